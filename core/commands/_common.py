@@ -1,0 +1,51 @@
+"""Helpers shared by command modules (argument types that give one-line errors)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def existing_file(text: str) -> Path:
+    p = Path(text).expanduser()
+    if not p.is_file():
+        raise argparse.ArgumentTypeError(f"file not found: {text}")
+    return p
+
+
+def unit_interval(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= x <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {x:g}")
+    return x
+
+
+def positive_int(text: str) -> int:
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}") from None
+    if x <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {x}")
+    return x
+
+
+def shard(text: str) -> tuple[int, int]:
+    """``i/n`` with 0 <= i < n (0-based shard index)."""
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a shard as i/n (e.g. 0/4), got {text!r}") from None
+    if n <= 0 or not 0 <= i < n:
+        raise argparse.ArgumentTypeError(f"shard {text!r}: need 0 <= i < n")
+    return i, n
+
+
+def device(text: str) -> str:
+    t = text.strip().lower()
+    if t not in ("cpu", "cuda", "auto") and not (t.startswith("cuda:") and t[5:].isdigit()):
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda, cuda:N or auto, got {text!r}")
+    return t

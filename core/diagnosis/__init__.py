@@ -1,0 +1,1 @@
+"""Comparing simulations with measurements and finding the missing physical effect."""

@@ -1,0 +1,1 @@
+"""The UniPixie model (grid encoder, flow-matching decoders) and its inference path."""

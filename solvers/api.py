@@ -1,0 +1,124 @@
+"""The interface every solver implements, and the dispatcher over them.
+
+Solvers are pure functions of (body, material, scenario, effects, frame
+times, device) → :class:`~unipixie.core.types.Trajectory`.  Set-up (particle
+filling, neighbour search, kernel compilation, material lookup) is separated
+from stepping so that a caller can re-run cheaply with other effect
+parameters — the diagnosis fits effects this way::
+
+    sim = prepare("mpm", body, material, scenario, frame_times, device="cpu")
+    base = sim.run([])
+    dragged = sim.run([effects.make("linear_drag", c=0.8)])
+    many = sim.run_batch([[], [drag], [wind]])   # one launch per step where the solver allows
+
+Each solver module (``mpm``, ``spring_mass``, ``lbs``) defines a subclass of
+:class:`Simulation` and a ``prepare(body, material, scenario, frame_times,
+device="cpu", settings=None, progress=None)`` function.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from ..core.errors import UserError
+from ..core.progress import Progress
+from ..core.types import Trajectory
+from . import effects as effects_mod
+from .body import Body
+from .effects import Effect, EffectContext, PhysicsTerms
+from .material_sampling import MaterialSpec
+from .scenario import Scenario
+
+SOLVERS = {"mpm": "mpm", "lbs": "lbs", "spring_mass": "spring_mass"}
+"""Solver name -> module in ``unipixie.solvers``."""
+
+ALIASES = {"spring": "spring_mass", "springmass": "spring_mass", "spring-mass": "spring_mass"}
+
+
+def canonical_solver(name: str) -> str:
+    key = (name or "").strip().lower()
+    key = ALIASES.get(key, key)
+    if key not in SOLVERS:
+        raise UserError(f"unknown solver {name!r}; choose one of: {', '.join(SOLVERS)}")
+    return key
+
+
+def check_frame_times(frame_times) -> np.ndarray:
+    """(T,) float64 seconds, strictly increasing, starting at the initial state (T >= 1)."""
+    t = np.asarray(frame_times, dtype=np.float64).reshape(-1)
+    if t.size == 0:
+        raise UserError("no frame times given (the frame range is empty)")
+    if not np.all(np.isfinite(t)):
+        raise UserError("frame times contain NaN/inf")
+    if t.size > 1 and not np.all(np.diff(t) > 0):
+        raise UserError("frame times must be strictly increasing")
+    return t
+
+
+class Simulation:
+    """A prepared simulation; subclasses implement :meth:`_run_terms`.
+
+    Attributes
+    ----------
+    solver: solver name.
+    frame_times: (T,) seconds.
+    sample_positions: (S, 3) rest positions of the material samples (for effect regions).
+    tracked_rest: (N, 3) rest positions of the tracked points.
+    device: Warp device name.
+    """
+
+    solver: str = ""
+
+    def __init__(self, body: Body, scenario: Scenario, frame_times, device: str):
+        self.body = body
+        self.scenario = scenario
+        self.frame_times = check_frame_times(frame_times)
+        self.device = device
+        self.sample_positions: np.ndarray = np.zeros((0, 3))
+        self.tracked_rest: np.ndarray = np.asarray(body.tracked_points, dtype=np.float64)
+
+    # -- effects -> terms -------------------------------------------------------------
+    def effect_context(self) -> EffectContext:
+        return EffectContext(sample_positions=self.sample_positions, tracked_rest_positions=self.tracked_rest)
+
+    def terms_for(self, effect_list: Iterable[Effect]) -> PhysicsTerms:
+        effect_list = list(effect_list)
+        effects_mod.check_supported(effect_list, self.solver)
+        return effects_mod.combine(effect_list, self.effect_context())
+
+    # -- running ------------------------------------------------------------------------
+    def run(self, effect_list: Iterable[Effect] = (), *, progress: Progress | None = None,
+            particle_states: bool = False) -> Trajectory:
+        """Simulate with the given effects; ``particle_states`` adds per-frame sample positions."""
+        return self._run_terms([self.terms_for(effect_list)], progress=progress, particle_states=particle_states)[0]
+
+    def run_batch(self, effect_lists: Sequence[Iterable[Effect]], *, progress: Progress | None = None) -> list[Trajectory]:
+        """Simulate several environments (one effect list each); solvers that can batch do it in one launch."""
+        terms = [self.terms_for(e) for e in effect_lists]
+        return self._run_terms(terms, progress=progress, particle_states=False)
+
+    def _run_terms(self, terms: list[PhysicsTerms], *, progress: Progress | None,
+                   particle_states: bool) -> list[Trajectory]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def solver_module(name: str):
+    return importlib.import_module(f"{__package__}.{SOLVERS[canonical_solver(name)]}")
+
+
+def prepare(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
+            settings=None, progress: Progress | None = None) -> Simulation:
+    """Prepare a simulation with the named solver (``"mpm"``, ``"lbs"``, ``"spring_mass"``)."""
+    return solver_module(solver).prepare(body, material, scenario, frame_times, device=device, settings=settings,
+                                         progress=progress)
+
+
+def simulate(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times,
+             effect_list: Iterable[Effect] = (), device: str = "cpu", settings=None,
+             progress: Progress | None = None, particle_states: bool = False) -> Trajectory:
+    """Prepare and run in one call."""
+    sim = prepare(solver, body, material, scenario, frame_times, device=device, settings=settings, progress=progress)
+    return sim.run(effect_list, progress=progress, particle_states=particle_states)

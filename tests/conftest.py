@@ -1,0 +1,41 @@
+"""Test set-up: isolate Blender's user directory and UniPixie's caches before anything imports bpy."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import pytest
+
+_SESSION_TMP = tempfile.mkdtemp(prefix="unipixie-tests-")
+# Blender reads these at import time: never touch ~/.config/blender from tests.
+os.environ["BLENDER_USER_RESOURCES"] = os.path.join(_SESSION_TMP, "blender-user")
+os.environ.pop("BLENDER_USER_CONFIG", None)
+os.environ.pop("BLENDER_USER_SCRIPTS", None)
+# Fresh caches per test session, but keep Warp's compiled kernels between sessions (compiling is slow).
+_default_warp = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "unipixie" / "warp"
+os.environ.setdefault("UNIPIXIE_WARP_CACHE", str(_default_warp))
+os.environ["UNIPIXIE_CACHE_DIR"] = os.path.join(_SESSION_TMP, "cache")
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO_ROOT
+
+
+@pytest.fixture
+def blender():
+    """The bpy module with an empty factory scene and the UniPixie add-on registered (in-process)."""
+    bpy = pytest.importorskip("bpy")
+    import unipixie
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    unipixie.register()
+    try:
+        yield bpy
+    finally:
+        unipixie.unregister()
+        bpy.ops.wm.read_factory_settings(use_empty=True)

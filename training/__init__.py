@@ -1,0 +1,1 @@
+"""Procedural dataset, cross-solver ground truth, training loop, evaluation and baselines."""
