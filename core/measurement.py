@@ -1,0 +1,557 @@
+"""Measured motion of tracked points: the ``unipixie.measurement/1`` file and its CSV variant.
+
+The contract is ``shared/specs/measurement-format.md`` §1.  A measurement is
+
+* ``positions``: (T, N, 3) float64 metres; NaN marks a point not observed at an instant
+  (occlusion).  A sample with any NaN coordinate counts as unobserved as a whole and is
+  skipped in every error, never treated as zero;
+* ``times``: (T,) float64 seconds, strictly increasing; ``times[0]`` is the initial state;
+* ``rest_positions``: (N, 3) metres, the undeformed state (default ``positions[0]``);
+* ``faces``: optional (F, 3) int64, a closed, outward-oriented surface whose vertices are
+  the tracked points (without it the solid is the convex hull of ``rest_positions``);
+* ``scenario``: gravity, ground, initial motion, clamp (:class:`~unipixie.solvers.scenario.Scenario`)
+  and the material the model currently believes (homogeneous in the scenario JSON, or a
+  per-point field as extra archive keys ``E``, ``nu``, ``density`` of shape (N,)).
+
+A file that breaks the contract is refused with a :class:`~unipixie.core.errors.UserError`
+that names the offending key; nothing is written in its place.  Files are written
+atomically (a temporary file renamed into place), so a failed save never leaves half a file.
+
+CSV (``t,id,x,y,z``, one observed sample per row, header optional) is read by
+:func:`load_csv`; its scenario comes from a side-car JSON file (``name.json`` next to
+``name.csv``) or the ``scenario`` argument.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from .errors import UserError
+
+MEASUREMENT_FORMAT = "unipixie.measurement/1"
+REQUIRED_KEYS = ("positions", "times", "scenario")
+OPTIONAL_KEYS = ("rest_positions", "faces", "E", "nu", "density")
+
+
+def _fail(source: str, msg: str) -> UserError:
+    return UserError(f"{source}: {msg}" if source else msg)
+
+
+# --------------------------------------------------------------------------- material
+@dataclass
+class MeasuredMaterial:
+    """The material the model currently believes for the measured solid.
+
+    E: Pa, nu: -, density: kg/m³ — each a float (homogeneous) or an (N,) array (per tracked point).
+    material_class: registry name of the material class (``"jelly"`` by default).
+    """
+
+    E: Any
+    nu: Any
+    density: Any
+    material_class: str = "jelly"
+
+    @property
+    def homogeneous(self) -> bool:
+        return all(np.ndim(v) == 0 for v in (self.E, self.nu, self.density))
+
+    def scaled(self, E_scale: float) -> "MeasuredMaterial":
+        """A copy with Young's modulus multiplied by ``E_scale``."""
+        E = float(self.E) * E_scale if np.ndim(self.E) == 0 else np.asarray(self.E) * E_scale
+        return MeasuredMaterial(E, self.nu, self.density, self.material_class)
+
+    def mean_E(self) -> float:
+        return float(np.mean(self.E))
+
+    def mean_density(self) -> float:
+        return float(np.mean(self.density))
+
+    def to_spec(self, rest_positions: np.ndarray):
+        """The solver-side material: ``HomogeneousMaterial`` or ``PointMaterial`` over the rest positions."""
+        from ..solvers.material_sampling import HomogeneousMaterial, PointMaterial
+        from ..solvers import materials
+
+        cls_id = materials.get(self.material_class).id
+        if self.homogeneous:
+            return HomogeneousMaterial(float(self.E), float(self.nu), float(self.density), cls_id)
+        n = len(rest_positions)
+        arr = {k: np.broadcast_to(np.asarray(getattr(self, k), dtype=np.float64), (n,)).copy()
+               for k in ("E", "nu", "density")}
+        return PointMaterial(rest_positions, arr["E"], arr["nu"], arr["density"], np.full(n, cls_id, dtype=np.int32))
+
+    def to_dict(self) -> dict:
+        """JSON-able summary (per-point fields as mean/min/max)."""
+        out: dict[str, Any] = {"material_class": self.material_class}
+        for k in ("E", "nu", "density"):
+            v = getattr(self, k)
+            if np.ndim(v) == 0:
+                out[k] = float(v)
+            else:
+                a = np.asarray(v, dtype=np.float64)
+                out[k] = {"mean": float(a.mean()), "min": float(a.min()), "max": float(a.max()), "per_point": True}
+        return out
+
+
+def _check_material_values(E, nu, density, where: str) -> None:
+    E = np.asarray(E, dtype=np.float64)
+    nu = np.asarray(nu, dtype=np.float64)
+    density = np.asarray(density, dtype=np.float64)
+    if not (np.all(np.isfinite(E)) and np.all(E > 0)):
+        raise UserError(f"{where} 'E' must be a positive number of pascals")
+    if not (np.all(np.isfinite(nu)) and np.all((nu > -1.0) & (nu < 0.5))):
+        raise UserError(f"{where} 'nu' must lie in (-1, 0.5)")
+    if not (np.all(np.isfinite(density)) and np.all(density > 0)):
+        raise UserError(f"{where} 'density' must be a positive number of kg/m³")
+
+
+# --------------------------------------------------------------------------- the measurement
+@dataclass
+class Measurement:
+    """Measured motion (see the module docstring for the meaning and units of each field).
+
+    scenario: :class:`~unipixie.solvers.scenario.Scenario`.
+    material: :class:`MeasuredMaterial` or ``None`` when the file states none.
+    extra_arrays: archive keys outside the contract, kept and written back unchanged.
+    source: where it was read from (for messages).
+    warnings: what was assumed or repaired while reading.
+    """
+
+    positions: np.ndarray
+    times: np.ndarray
+    scenario: Any = None
+    rest_positions: Optional[np.ndarray] = None
+    faces: Optional[np.ndarray] = None
+    material: Optional[MeasuredMaterial] = None
+    extra_arrays: dict = field(default_factory=dict)
+    source: str = ""
+    warnings: list = field(default_factory=list)
+
+    def __post_init__(self):
+        from ..solvers.scenario import Scenario
+
+        src = self.source
+        if self.scenario is None:
+            self.scenario = Scenario()
+        elif isinstance(self.scenario, Mapping):
+            self.scenario = _scenario_from_dict(dict(self.scenario), src)[0]
+        # positions ---------------------------------------------------------------------
+        pos = _float_array(self.positions, "positions", src)
+        if pos.ndim != 3 or pos.shape[2] != 3:
+            raise _fail(src, f"key 'positions' must have shape (T, N, 3), got {pos.shape}")
+        T, N, _ = pos.shape
+        if T < 1 or N < 1:
+            raise _fail(src, f"key 'positions' is empty (shape {pos.shape})")
+        if np.any(np.isinf(pos)):
+            raise _fail(src, "key 'positions' contains infinite values (use NaN for unobserved points)")
+        pos = pos.copy()
+        pos[np.isnan(pos).any(axis=2)] = np.nan  # a sample is observed as a whole or not at all
+        self.positions = pos
+        # times ---------------------------------------------------------------------------
+        t = _float_array(self.times, "times", src).reshape(-1) if np.ndim(self.times) <= 1 else None
+        if t is None:
+            raise _fail(src, f"key 'times' must have shape (T,), got {np.shape(self.times)}")
+        if t.shape != (T,):
+            raise _fail(src, f"key 'times' has {t.shape[0]} entries but 'positions' has {T} instants")
+        if not np.all(np.isfinite(t)):
+            raise _fail(src, "key 'times' contains NaN or infinite values")
+        if T > 1 and not np.all(np.diff(t) > 0):
+            i = int(np.argmax(~(np.diff(t) > 0)))
+            raise _fail(src, f"key 'times' must be strictly increasing (times[{i}] = {t[i]:g} s, "
+                             f"times[{i + 1}] = {t[i + 1]:g} s)")
+        self.times = t
+        # rest positions ---------------------------------------------------------------
+        if self.rest_positions is not None:
+            rest = _float_array(self.rest_positions, "rest_positions", src)
+            if rest.shape != (N, 3):
+                raise _fail(src, f"key 'rest_positions' must have shape ({N}, 3) to match 'positions', got {rest.shape}")
+            if not np.all(np.isfinite(rest)):
+                raise _fail(src, "key 'rest_positions' contains NaN or infinite values")
+            self.rest_positions = rest
+        elif np.isnan(pos[0]).any():
+            missing = int(np.isnan(pos[0, :, 0]).sum())
+            raise _fail(src, f"key 'rest_positions' is missing and {missing} point(s) are unobserved in positions[0], "
+                             "so the rest shape is unknown; add 'rest_positions'")
+        # faces --------------------------------------------------------------------------
+        if self.faces is not None:
+            self.faces = _check_faces(self.faces, N, src, self.warnings)
+        # material ----------------------------------------------------------------------
+        if self.material is not None:
+            m = self.material
+            for k in ("E", "nu", "density"):
+                v = getattr(m, k)
+                if np.ndim(v) not in (0,) and np.shape(v) != (N,):
+                    raise _fail(src, f"key '{k}' must have one value per tracked point ({N},), got {np.shape(v)}")
+            _check_material_values(m.E, m.nu, m.density, f"{src}: material" if src else "material")
+            from ..solvers import materials
+
+            materials.get(m.material_class)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def frame_count(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def point_count(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def rest(self) -> np.ndarray:
+        """(N, 3) metres: ``rest_positions`` or ``positions[0]``."""
+        return self.rest_positions if self.rest_positions is not None else self.positions[0]
+
+    @property
+    def observed(self) -> np.ndarray:
+        """(T, N) bool, True where the point was observed."""
+        return ~np.isnan(self.positions[..., 0])
+
+    @property
+    def observed_count(self) -> int:
+        return int(self.observed.sum())
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    def require_material(self) -> MeasuredMaterial:
+        if self.material is None:
+            raise _fail(self.source, "the measurement states no material: add scenario key 'material' "
+                                     "{\"E\": Pa, \"nu\": -, \"density\": kg/m³} (or per-point keys 'E', 'nu', "
+                                     "'density'), or give --E/--nu/--density")
+        return self.material
+
+    def summary(self) -> str:
+        occl = 1.0 - self.observed_count / max(self.positions.shape[0] * self.positions.shape[1], 1)
+        return (f"{self.point_count} points × {self.frame_count} instants over {self.duration:.3g} s, "
+                f"{100 * occl:.1f} % occluded" + (f", {len(self.faces)} faces" if self.faces is not None else ""))
+
+    # ------------------------------------------------------------------ geometry
+    def body(self):
+        """The solid to simulate (:class:`~unipixie.solvers.body.Body`); its tracked points are the rest positions.
+
+        With ``faces`` the solid is their inside; without, the convex hull of ``rest_positions``.
+        """
+        import trimesh
+
+        from ..solvers.body import Body
+
+        rest = np.asarray(self.rest, dtype=np.float64)
+        if self.faces is not None:
+            mesh = trimesh.Trimesh(vertices=rest, faces=self.faces, process=False)
+            body = Body.from_mesh(mesh, tracked_points=rest)
+        else:
+            if len(rest) < 4:
+                raise _fail(self.source, "without 'faces' the solid is the convex hull of 'rest_positions', "
+                                         f"which needs at least 4 points (got {len(rest)})")
+            try:
+                hull = trimesh.convex.convex_hull(rest)
+            except Exception as exc:  # qhull errors for flat/degenerate point sets
+                raise _fail(self.source, f"the convex hull of 'rest_positions' is degenerate ({exc}); "
+                                         "give 'faces'") from None
+            if hull.volume <= 1e-12:
+                raise _fail(self.source, "the convex hull of 'rest_positions' has no volume (the points are flat); "
+                                         "give 'faces'")
+            body = Body.from_mesh(hull, tracked_points=rest)
+            body.warnings.append("no faces: the solid is the convex hull of the rest positions")
+        return body
+
+    # ------------------------------------------------------------------ (de)serialisation
+    def scenario_dict(self) -> dict:
+        d = self.scenario.to_dict()
+        if self.material is not None and self.material.homogeneous:
+            d["material"] = {"E": float(self.material.E), "nu": float(self.material.nu),
+                             "density": float(self.material.density)}
+            if self.material.material_class != "jelly":
+                d["material"]["class"] = self.material.material_class
+        elif self.material is not None:
+            d["material"] = {k: float(np.asarray(getattr(self.material, k)).mean()) for k in ("E", "nu", "density")}
+            d["material"]["per_point"] = True
+            if self.material.material_class != "jelly":
+                d["material"]["class"] = self.material.material_class
+        return d
+
+    def save(self, path) -> Path:
+        """Write the ``.npz`` (compressed) atomically; returns the path."""
+        path = Path(path)
+        arrays: dict[str, Any] = dict(self.extra_arrays)
+        arrays["positions"] = self.positions
+        arrays["times"] = self.times
+        arrays["scenario"] = np.array(json.dumps(self.scenario_dict()))
+        if self.rest_positions is not None:
+            arrays["rest_positions"] = self.rest_positions
+        if self.faces is not None:
+            arrays["faces"] = self.faces
+        if self.material is not None and not self.material.homogeneous:
+            n = self.point_count
+            for k in ("E", "nu", "density"):
+                arrays[k] = np.broadcast_to(np.asarray(getattr(self.material, k), dtype=np.float64), (n,)).copy()
+        _atomic_savez(path, arrays)
+        return path
+
+    def save_csv(self, path) -> Path:
+        """Write ``t,id,x,y,z`` rows (observed samples only) and the scenario as a side-car ``.json``."""
+        path = Path(path)
+        obs = self.observed
+        ti, pi = np.nonzero(obs)
+        rows = np.column_stack([self.times[ti], pi, self.positions[ti, pi]])
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "w", newline="") as f:
+            f.write("t,id,x,y,z\n")
+            for r in rows:
+                f.write(f"{r[0]:.9g},{int(r[1])},{r[2]:.9g},{r[3]:.9g},{r[4]:.9g}\n")
+        os.replace(tmp, path)
+        path.with_suffix(".json").write_text(json.dumps(self.scenario_dict(), indent=2))
+        return path
+
+    def subset(self, frames=None, points=None) -> "Measurement":
+        """A measurement restricted to some instants and/or points (faces dropped if points change)."""
+        fr = slice(None) if frames is None else frames
+        pt = slice(None) if points is None else np.asarray(points)
+        mat = self.material
+        if mat is not None and not mat.homogeneous and points is not None:
+            mat = MeasuredMaterial(*(np.broadcast_to(np.asarray(getattr(mat, k)), (self.point_count,))[pt]
+                                     for k in ("E", "nu", "density")), mat.material_class)
+        return Measurement(self.positions[fr][:, pt], self.times[fr], self.scenario,
+                           None if self.rest_positions is None and frames is None else self.rest[pt],
+                           self.faces if points is None else None, mat, source=self.source)
+
+
+# --------------------------------------------------------------------------- helpers
+def _float_array(value, key: str, src: str) -> np.ndarray:
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "fiu":
+        raise _fail(src, f"key '{key}' must hold numbers, got dtype {arr.dtype}")
+    return arr.astype(np.float64)
+
+
+def _check_faces(faces, n_points: int, src: str, warnings: list) -> np.ndarray:
+    arr = np.asarray(faces)
+    if arr.dtype.kind not in "iu":
+        if arr.dtype.kind == "f" and arr.size and np.all(np.isfinite(arr)) and np.all(arr == np.round(arr)):
+            arr = arr.astype(np.int64)
+        else:
+            raise _fail(src, f"key 'faces' must hold integer vertex indices, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0:
+        raise _fail(src, f"key 'faces' must have shape (F, 3) with F > 0, got {arr.shape}")
+    if arr.min() < 0 or arr.max() >= n_points:
+        raise _fail(src, f"key 'faces' refers to vertex {int(arr.max()) if arr.max() >= n_points else int(arr.min())}, "
+                         f"but there are {n_points} tracked points (indices 0..{n_points - 1})")
+    if np.any((arr[:, 0] == arr[:, 1]) | (arr[:, 1] == arr[:, 2]) | (arr[:, 0] == arr[:, 2])):
+        raise _fail(src, "key 'faces' has triangles that repeat a vertex")
+    # closed: every undirected edge used by exactly two faces, once in each direction (consistent orientation)
+    directed = np.concatenate([arr[:, [0, 1]], arr[:, [1, 2]], arr[:, [2, 0]]])
+    undirected = np.sort(directed, axis=1)
+    _, counts = np.unique(undirected, axis=0, return_counts=True)
+    if np.any(counts != 2):
+        bad = int(np.sum(counts != 2))
+        raise _fail(src, f"key 'faces' is not a closed surface ({bad} edge(s) not shared by exactly two triangles)")
+    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    if np.any(dcounts != 1):
+        raise _fail(src, "key 'faces' is not consistently oriented (an edge runs the same way in two triangles)")
+    return arr
+
+
+def _scenario_from_dict(d: dict, src: str):
+    """(Scenario, MeasuredMaterial | None) from the scenario JSON dict; errors name the key."""
+    from ..solvers.scenario import Scenario
+
+    try:
+        scenario = Scenario.from_dict(d)
+    except UserError as exc:
+        raise _fail(src, f"key 'scenario': {exc}") from None
+    material = None
+    mat = d.get("material")
+    if mat is not None:
+        if not isinstance(mat, Mapping):
+            raise _fail(src, f"scenario key 'material' must be {{\"E\": Pa, \"nu\": -, \"density\": kg/m³}}, got {mat!r}")
+        missing = [k for k in ("E", "nu", "density") if k not in mat]
+        if missing:
+            raise _fail(src, f"scenario key 'material' lacks {', '.join(repr(k) for k in missing)}")
+        try:
+            E, nu, rho = (float(mat[k]) for k in ("E", "nu", "density"))
+        except (TypeError, ValueError):
+            raise _fail(src, f"scenario key 'material' must hold numbers, got {mat!r}") from None
+        _check_material_values(E, nu, rho, f"{src}: scenario key 'material'" if src else "scenario key 'material'")
+        cls = str(mat.get("class", mat.get("material", "jelly")))
+        from ..solvers import materials
+
+        try:
+            materials.get(cls)
+        except UserError as exc:
+            raise _fail(src, f"scenario key 'material': {exc}") from None
+        material = MeasuredMaterial(E, nu, rho, cls)
+    return scenario, material
+
+
+def _atomic_savez(path: Path, arrays: dict) -> None:
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise UserError(f"{path}: a measurement file must end in .npz")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp.npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# --------------------------------------------------------------------------- loading
+def load_npz(path) -> Measurement:
+    """Read and validate a ``unipixie.measurement/1`` archive; a :class:`UserError` names any broken key."""
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise UserError(f"{src}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise UserError(f"{src}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
+    for key in REQUIRED_KEYS:
+        if key not in data:
+            raise UserError(f"{src}: key '{key}' is missing (a measurement needs {', '.join(REQUIRED_KEYS)})")
+    sc = data["scenario"]
+    if sc.dtype.kind not in "US" or sc.ndim != 0:
+        raise UserError(f"{src}: key 'scenario' must be a 0-d string array holding JSON, got dtype {sc.dtype} "
+                        f"shape {sc.shape}")
+    try:
+        sdict = json.loads(str(sc))
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{src}: key 'scenario' is not valid JSON ({exc})") from None
+    if not isinstance(sdict, dict):
+        raise UserError(f"{src}: key 'scenario' must be a JSON object")
+    scenario, material = _scenario_from_dict(sdict, src)
+    positions = data["positions"]
+    n = positions.shape[1] if positions.ndim == 3 else None
+    per_point = {k: data[k] for k in ("E", "nu", "density") if k in data}
+    if per_point:
+        for k, v in per_point.items():
+            if v.dtype.kind not in "fiu" or (n is not None and v.shape != (n,)):
+                raise UserError(f"{src}: key '{k}' must be a float array of shape ({n},) (one value per tracked point), "
+                                f"got dtype {v.dtype} shape {v.shape}")
+        if material is None and len(per_point) < 3:
+            lacking = [k for k in ("E", "nu", "density") if k not in per_point]
+            raise UserError(f"{src}: per-point material keys given but {', '.join(repr(k) for k in lacking)} missing "
+                            "and the scenario states no 'material' to fill them")
+        base = material or MeasuredMaterial(0, 0, 0)
+        material = MeasuredMaterial(*(per_point[k].astype(np.float64) if k in per_point else getattr(base, k)
+                                      for k in ("E", "nu", "density")), base.material_class)
+    extras = {k: v for k, v in data.items() if k not in REQUIRED_KEYS + OPTIONAL_KEYS}
+    return Measurement(positions=positions, times=data["times"], scenario=scenario,
+                       rest_positions=data.get("rest_positions"), faces=data.get("faces"), material=material,
+                       extra_arrays=extras, source=src)
+
+
+def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measurement:
+    """Read ``t,id,x,y,z`` rows (seconds, point id, metres) into a measurement.
+
+    Missing (t, id) pairs and empty/``nan`` coordinates become NaN (unobserved).  Point ids
+    are sorted (numerically when all are integers); instants are the sorted distinct ``t``.
+    scenario: dict / JSON path / ``None`` (then ``<name>.json`` beside the CSV if it exists,
+    else the default scenario with no material).
+    """
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise UserError(f"{src}: file not found")
+    ts: list[float] = []
+    ids: list[str] = []
+    xyz: list[tuple[float, float, float]] = []
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        for lineno, row in enumerate(reader, start=1):
+            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                continue
+            if len(row) != 5:
+                raise UserError(f"{src}: line {lineno}: expected 5 columns t,id,x,y,z, got {len(row)}")
+            try:
+                t = float(row[0])
+            except ValueError:
+                if lineno == 1 or not ts:
+                    continue  # header
+                raise UserError(f"{src}: line {lineno}: column 't' is not a number: {row[0]!r}") from None
+            vals = []
+            for name, c in zip("xyz", row[2:]):
+                c = c.strip()
+                try:
+                    vals.append(float(c) if c else math.nan)
+                except ValueError:
+                    raise UserError(f"{src}: line {lineno}: column '{name}' is not a number: {c!r}") from None
+            if not math.isfinite(t):
+                raise UserError(f"{src}: line {lineno}: column 't' must be finite")
+            ts.append(t)
+            ids.append(row[1].strip())
+            xyz.append(tuple(vals))
+    if not ts:
+        raise UserError(f"{src}: no data rows (expected t,id,x,y,z)")
+    t_arr = np.asarray(ts)
+    # distinct instants, merging times equal to within a nanosecond
+    order = np.argsort(t_arr, kind="stable")
+    uniq: list[float] = []
+    for v in t_arr[order]:
+        if not uniq or v - uniq[-1] > 1e-9:
+            uniq.append(float(v))
+    times = np.asarray(uniq)
+    t_index = np.clip(np.searchsorted(times, t_arr - 1e-9), 0, len(times) - 1)
+    try:
+        keys = sorted(set(ids), key=int)
+    except ValueError:
+        keys = sorted(set(ids))
+    p_index_of = {k: i for i, k in enumerate(keys)}
+    positions = np.full((len(times), len(keys), 3), np.nan)
+    seen = np.zeros((len(times), len(keys)), dtype=bool)
+    for t_i, pid, v in zip(t_index, ids, xyz):
+        p_i = p_index_of[pid]
+        if seen[t_i, p_i]:
+            raise UserError(f"{src}: point id {pid!r} appears twice at t = {times[t_i]:g} s")
+        seen[t_i, p_i] = True
+        positions[t_i, p_i] = v
+    sdict = None
+    if scenario is None:
+        side = path.with_suffix(".json")
+        if side.is_file():
+            scenario = side
+    if isinstance(scenario, (str, os.PathLike)):
+        sp = Path(scenario)
+        try:
+            sdict = json.loads(sp.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise UserError(f"{sp}: cannot read the scenario JSON ({exc})") from None
+        src_sc = str(sp)
+    elif isinstance(scenario, Mapping):
+        sdict, src_sc = dict(scenario), src
+    else:
+        sdict, src_sc = {"format": MEASUREMENT_FORMAT}, src
+    sc, material = _scenario_from_dict(sdict, src_sc)
+    m = Measurement(positions=positions, times=times, scenario=sc, rest_positions=rest_positions, faces=faces,
+                    material=material, source=src)
+    m.extra_arrays["point_ids"] = np.asarray(keys)
+    return m
+
+
+def load(path, **kwargs) -> Measurement:
+    """Load a measurement by extension: ``.npz`` (the spec's format) or ``.csv`` (t,id,x,y,z)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        if kwargs:
+            raise UserError(f"{path}: options {sorted(kwargs)} apply to CSV files only")
+        return load_npz(path)
+    if suffix == ".csv":
+        return load_csv(path, **kwargs)
+    raise UserError(f"{path}: unknown measurement file type {suffix!r}; use .npz ({MEASUREMENT_FORMAT}) or .csv "
+                    "(t,id,x,y,z)")
