@@ -1,0 +1,143 @@
+"""Bringing objects from files into Blender for the pipeline, and taking them out again.
+
+:func:`loaded_objects` imports a mesh file (``.glb`` / ``.gltf`` / ``.obj`` /
+``.ply`` / ``.stl``, through Blender's own importers, so materials and textures
+come along) or appends an object from a ``.blend`` file into a *temporary
+scene*; on exit it removes every data-block the import created, so the
+current file (the user's session, when called from inside Blender) is left
+as it was.
+
+    with loaded_objects("chair.glb") as objects:      # list of bpy Objects with geometry
+        views = render_views(objects, settings)
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import bpy
+
+from ..errors import UserError
+
+MESH_FILE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
+SUPPORTED_SUFFIXES = MESH_FILE_SUFFIXES + (".blend",)
+GEOMETRY_TYPES = ("MESH", "CURVE", "SURFACE", "META", "FONT")
+"""Object types that can be turned into a triangle mesh (``bpy.data.meshes.new_from_object``)."""
+
+
+def _importer(suffix: str):
+    return {
+        ".glb": bpy.ops.import_scene.gltf,
+        ".gltf": bpy.ops.import_scene.gltf,
+        ".obj": bpy.ops.wm.obj_import,
+        ".ply": bpy.ops.wm.ply_import,
+        ".stl": bpy.ops.wm.stl_import,
+    }[suffix]
+
+
+def _id_collections():
+    """Every ``bpy.data`` collection of data-blocks (objects, meshes, materials, images, ...)."""
+    skip = {"window_managers", "screens", "workspaces"}
+    return [getattr(bpy.data, p.identifier) for p in bpy.data.bl_rna.properties
+            if p.type == "COLLECTION" and p.identifier not in skip]
+
+
+def snapshot_ids() -> set:
+    """The set of all data-blocks now present (to find those created later)."""
+    ids = set()
+    for coll in _id_collections():
+        ids.update(idb for idb in coll if isinstance(idb, bpy.types.ID))
+    return ids
+
+
+def remove_new_ids(before: set) -> None:
+    """Remove every data-block created since ``before`` (a :func:`snapshot_ids` result)."""
+    new = [idb for idb in snapshot_ids() if idb not in before and isinstance(idb, bpy.types.ID)]
+    if new:
+        bpy.data.batch_remove(new)
+
+
+def geometry_objects(objects) -> list:
+    """The objects among ``objects`` that have renderable geometry; a clear error when there are none."""
+    objs = [o for o in objects if o is not None and o.type in GEOMETRY_TYPES]
+    if not objs:
+        kinds = ", ".join(sorted({f"{o.name} ({o.type.lower()})" for o in objects if o is not None})) or "nothing"
+        raise UserError(f"no object with geometry to look at (got {kinds}); select a mesh object")
+    return objs
+
+
+@contextlib.contextmanager
+def temporary_scene(name: str = "UniPixie temporary"):
+    """A new empty scene that is removed (with everything created meanwhile) on exit."""
+    before = snapshot_ids()
+    scene = bpy.data.scenes.new(name)
+    try:
+        yield scene
+    finally:
+        remove_new_ids(before)
+
+
+@contextlib.contextmanager
+def loaded_objects(path, object_name: str | None = None):
+    """Import ``path`` into a temporary scene and yield its objects with geometry (see module docstring).
+
+    object_name: for ``.blend`` files, the object to append (needed when the file holds several objects
+        with geometry); for mesh files, keep only the imported object of that name.
+    """
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise UserError(f"{path}: file not found")
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise UserError(f"{path}: unsupported file type {suffix or '(none)'!r}; supported: "
+                        f"{', '.join(SUPPORTED_SUFFIXES)}")
+    with temporary_scene("UniPixie import") as scene:
+        if suffix == ".blend":
+            objects = _append_from_blend(path, object_name, scene)
+        else:
+            before = set(bpy.data.objects)
+            try:
+                with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0],
+                                               collection=scene.collection):
+                    result = _importer(suffix)(filepath=str(path))
+            except RuntimeError as exc:
+                raise UserError(f"{path}: Blender could not import it: {str(exc).strip().splitlines()[-1]}") from None
+            if "FINISHED" not in result:
+                raise UserError(f"{path}: Blender's {suffix} importer failed ({', '.join(sorted(result))})")
+            objects = [o for o in bpy.data.objects if o not in before]
+            if object_name:
+                chosen = [o for o in objects if o.name == object_name]
+                if not chosen:
+                    raise UserError(f"{path}: no object named {object_name!r}; it holds "
+                                    f"{', '.join(sorted(o.name for o in objects)) or 'no objects'}")
+                objects = chosen
+            if not objects:
+                raise UserError(f"{path}: the file holds no objects")
+        yield geometry_objects(objects)
+
+
+def _append_from_blend(path: Path, object_name: str | None, scene) -> list:
+    try:
+        with bpy.data.libraries.load(str(path), link=False) as (src, dst):
+            names = list(src.objects)
+            if object_name is not None:
+                if object_name not in names:
+                    raise UserError(f"{path}: no object named {object_name!r}; it holds "
+                                    f"{', '.join(sorted(names)) or 'no objects'}")
+                dst.objects = [object_name]
+            else:
+                dst.objects = names
+    except OSError as exc:
+        raise UserError(f"{path}: not a readable .blend file ({exc})") from None
+    objects = [o for o in dst.objects if o is not None]
+    for o in objects:
+        scene.collection.objects.link(o)
+    if object_name is None:
+        geo = [o for o in objects if o.type in GEOMETRY_TYPES]
+        if len(geo) > 1:
+            raise UserError(f"{path} holds several objects with geometry ({', '.join(sorted(o.name for o in geo))}); "
+                            "choose one with --object NAME")
+    else:
+        objects = [o for o in objects if o.name == object_name] or objects
+    return objects
