@@ -1,0 +1,133 @@
+"""Warp kernels of the spring-mass solver (imported only after :func:`~.warp_runtime.init_warp`).
+
+Arrays are indexed ``[env, item]``: every simulated environment (one effect list of a
+batch) runs in the same launch.  Springs are stored as half-edges in CSR order
+(``start[i] .. start[i + 1]`` are the springs of anchor ``i``), so each thread *gathers*
+the forces on its own anchor: no atomics, one launch per substep.  Each spring has one
+half-edge at each end with its own copy of the rest length; both copies see identical
+inputs every substep, so plastic rest-length updates stay symmetric.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+BIG = 1.0e30
+"""Yield strain meaning "never yields"."""
+
+
+@wp.kernel
+def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                   x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
+                   rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
+                   dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
+                   start: wp.array(dtype=int), nbr: wp.array(dtype=int),
+                   inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
+                   accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
+                   quad_drag: wp.array(dtype=float), friction: wp.array(dtype=float),
+                   ground: float, has_ground: int, dt: float):
+    """One semi-implicit Euler substep of anchor ``i`` in environment ``e``.
+
+    x, v: (E, N) m, m/s at the start of the substep; x_out, v_out: (E, N) at its end.
+    rest: (E, H) current rest lengths m (plasticity updates them); kappa: (E, H) N/m;
+    dashpot: (E, H) N·s/m; yield_strain: (E, H) (>= BIG: elastic).
+    inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
+    accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
+    friction: (E,) Coulomb μ at the ground plane z = ground (when has_ground != 0).
+    """
+    e, i = wp.tid()
+    im = inv_mass[i]
+    if im == 0.0:
+        x_out[e, i] = x_rest[i]
+        v_out[e, i] = wp.vec3(0.0, 0.0, 0.0)
+        return
+    xi = x[e, i]
+    vi = v[e, i]
+    f = wp.vec3(0.0, 0.0, 0.0)
+    for h in range(start[i], start[i + 1]):
+        j = nbr[h]
+        d = x[e, j] - xi
+        l = wp.length(d)
+        if l > 1.0e-12:
+            n = d / l
+            L = rest[e, h]
+            ey = yield_strain[e, h]
+            if ey < BIG:
+                s = (l - L) / L
+                if s > ey:
+                    L = l / (1.0 + ey)
+                    rest[e, h] = L
+                elif s < -ey:
+                    L = l / (1.0 - ey)
+                    rest[e, h] = L
+            f = f + (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
+    vn = vi + dt * (accel[e] + im * f)
+    # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
+    vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+    xn = xi + dt * vn
+    if has_ground != 0:
+        if xn[2] < ground:
+            # inelastic contact: land exactly on the plane; the normal velocity change is the impulse
+            vz = (ground - xi[2]) / dt
+            if vz > 0.0:  # started below the plane (initial overlap): push out, keep no velocity
+                vz = 0.0
+            jn = vz - vn[2]
+            vt = wp.vec3(vn[0], vn[1], 0.0)
+            st = wp.length(vt)
+            mu = friction[e]
+            if st > 0.0 and mu > 0.0:
+                vt = vt * wp.max(0.0, 1.0 - mu * jn / st)
+            vn = wp.vec3(vt[0], vt[1], vz)
+            xn = wp.vec3(xi[0] + dt * vt[0], xi[1] + dt * vt[1], ground)
+    x_out[e, i] = xn
+    v_out[e, i] = vn
+
+
+@wp.kernel
+def anchor_rotations(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3),
+                     start: wp.array(dtype=int), nbr: wp.array(dtype=int),
+                     gram_inv: wp.array(dtype=wp.mat33), rot: wp.array2d(dtype=wp.mat33)):
+    """Per-anchor rotation: polar part of the least-squares deformation of its spring star.
+
+    F_i = (Σ_h d_h d0_hᵀ) (Σ_h d0_h d0_hᵀ)⁻¹ with d = x_j − x_i now and d0 at rest; R_i = U Vᵀ.
+    """
+    e, i = wp.tid()
+    xi = x[e, i]
+    x0 = x_rest[i]
+    B = wp.mat33(0.0)
+    for h in range(start[i], start[i + 1]):
+        j = nbr[h]
+        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
+    F = B * gram_inv[i]
+    U = wp.mat33()
+    S = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, S, V)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < 0.0:
+        U = wp.mat33(U[0, 0], U[0, 1], -U[0, 2], U[1, 0], U[1, 1], -U[1, 2], U[2, 0], U[2, 1], -U[2, 2])
+        R = U * wp.transpose(V)
+    rot[e, i] = R
+
+
+@wp.kernel
+def bind_points(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3), rot: wp.array2d(dtype=wp.mat33),
+                point_rest: wp.array(dtype=wp.vec3), bind_idx: wp.array2d(dtype=int),
+                bind_w: wp.array2d(dtype=float), out: wp.array3d(dtype=wp.vec3), frame: int):
+    """Position of bound point p: Σ_b w_pb (x_b + R_b (X_p − X_b)), written to out[e, frame, p]."""
+    e, p = wp.tid()
+    X = point_rest[p]
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(bind_idx.shape[1]):
+        b = bind_idx[p, k]
+        acc = acc + bind_w[p, k] * (x[e, b] + rot[e, b] * (X - x_rest[b]))
+    out[e, frame, p] = acc
+
+
+@wp.kernel
+def store_state(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                out_x: wp.array3d(dtype=wp.vec3), out_v: wp.array3d(dtype=wp.vec3), frame: int):
+    """Copy anchor positions and velocities into the per-frame output (E, T, N)."""
+    e, i = wp.tid()
+    out_x[e, frame, i] = x[e, i]
+    out_v[e, frame, i] = v[e, i]
