@@ -14,6 +14,7 @@ _MODULE_NAMES = (
     "properties",
     "operators_setup",
     "panels",
+    "operators_bake",
 )
 
 

@@ -1,0 +1,1219 @@
+"""Baking simulations into keyframes: everything that does not touch Blender.
+
+The Blender side (:mod:`unipixie.core.blender_io.bake`) reads an object into a
+:class:`BakeObject` (plain numpy arrays), asks this module for the physics, and
+writes what comes back as Blender data.  This module holds:
+
+* :class:`BakeObject` — a mesh object as arrays: rest vertices in the object's
+  local space (Blender units), triangles, ``matrix_world`` and the scene's unit
+  scale; it converts between local coordinates and world metres.
+* :func:`build_body` — the :class:`~unipixie.solvers.body.Body` a solver needs,
+  with the checks a user needs (empty mesh, open mesh, zero-area faces, absurd
+  sizes) as :class:`~unipixie.core.errors.UserError` or warnings.
+* Material sources — *where the material comes from*: a homogeneous material,
+  a :class:`~unipixie.core.types.MaterialField` file in the object's normalised
+  cube, or the model's prediction at α.  Each is a :class:`MaterialSource`
+  (``resolve(obj, alpha, solver) -> ResolvedMaterial``); the model plugs in with
+  :func:`register_material_predictor`.
+* :func:`simulate` — runs the chosen solver with progress and cancellation and
+  returns a :class:`SimulationResult` (the trajectory plus what the writer needs).
+* :class:`BackgroundRun` — runs :func:`simulate` in a worker thread so that the
+  Blender UI stays responsive (Esc cancels through the shared ``Progress``).
+* Output planning (:func:`choose_output`), the armature decomposition of LBS
+  handle transforms (:func:`plan_armature`), the PC2 point-cache reader/writer,
+  bake jobs, ``--shard`` splitting and job manifests.
+
+Units: world positions are metres; Blender-local positions are Blender units
+(metres divided by the scene's unit scale, in the object's own frame).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+import json
+import os
+import re
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Optional, Sequence
+
+import numpy as np
+
+from .errors import CancelledError, UserError
+from .progress import Progress, silent
+
+# --------------------------------------------------------------------------- constants
+BAKE_RECORD_KEY = "unipixie_bake"
+"""ID property on a baked object holding the JSON record of everything the bake added."""
+BAKE_RECORD_FORMAT = "unipixie.bake/1"
+MANIFEST_FORMAT = "unipixie.bake-manifest/1"
+
+OUTPUT_MODES = ("auto", "shape_keys", "mesh_cache", "armature")
+"""How the motion is stored: ``auto`` picks per solver and size (see :func:`choose_output`)."""
+OUTPUT_LABELS = {
+    "auto": ("Automatic", "Armature for LBS when exact enough, else shape keys; a Mesh Cache (PC2) for large bakes"),
+    "shape_keys": ("Shape keys", "One keyframed shape key per frame (stored in the .blend)"),
+    "mesh_cache": ("Mesh Cache (PC2)", "A Mesh Cache modifier reading a PC2 file written next to the .blend"),
+    "armature": ("Armature (LBS)", "One bone per LBS handle, vertex groups and an Armature modifier"),
+}
+INTERPOLATIONS = ("LINEAR", "CONSTANT")
+"""Keyframe interpolation between frames; both give the exact trajectory at integer frames."""
+
+SHAPE_KEY_VERTEX_FRAME_LIMIT = 2_000_000
+"""``auto`` switches from shape keys to a Mesh Cache above this many vertices × frames (24 MB of keys)."""
+MESH_CACHE_FRAME_LIMIT = 1000
+"""``auto`` also uses a Mesh Cache above this many frames (a thousand shape keys is unwieldy in the UI)."""
+
+SIZE_WARN_RANGE = (1e-3, 1e3)
+"""Objects whose largest world extent (m) falls outside this range get a warning (real-world physics)."""
+SIZE_REFUSE_RANGE = (1e-6, 1e5)
+"""Outside this range (m) the bake is refused: almost certainly a unit or scale mistake."""
+
+ARMATURE_TOLERANCE = 1e-4
+"""Default largest allowed armature error, as a fraction of the object's size (0.1 mm for a 1 m object)."""
+
+MATERIAL_SOURCES = ("homogeneous", "field", "model")
+MATERIAL_SOURCE_LABELS = {
+    "homogeneous": ("Homogeneous", "One material (class, E, ν, density) for the whole object"),
+    "field": ("Field file", "A per-voxel material field (.npz, unipixie.material_field/1) in the object's normalised cube"),
+    "model": ("Model at α", "The UniPixie model's prediction at the object's α"),
+}
+DEFAULT_HOMOGENEOUS = {"E": 1.0e5, "nu": 0.3, "density": 1000.0, "material": "jelly"}
+"""The panel's default homogeneous material (a soft jelly: E 100 kPa, ν 0.3, 1000 kg/m³)."""
+
+
+# --------------------------------------------------------------------------- frames
+@dataclass(frozen=True)
+class FrameRange:
+    """Scene frames ``start`` … ``end`` inclusive; ``start`` is the rest state (time 0)."""
+
+    start: int
+    end: int
+
+    def __post_init__(self):
+        if self.end < self.start:
+            raise UserError(f"the frame range {self.start}-{self.end} is empty (end before start)")
+        if self.end == self.start:
+            raise UserError(f"the frame range {self.start}-{self.end} has a single frame: nothing moves; "
+                            "give at least two frames")
+
+    @property
+    def count(self) -> int:
+        return self.end - self.start + 1
+
+    @property
+    def frames(self) -> np.ndarray:
+        """(T,) int64 frame numbers."""
+        return np.arange(self.start, self.end + 1, dtype=np.int64)
+
+    def times(self, fps: float) -> np.ndarray:
+        """(T,) float64 seconds since ``start`` at ``fps`` frames per second."""
+        if not (np.isfinite(fps) and fps > 0):
+            raise UserError(f"frames per second must be positive, got {fps!r}")
+        return (self.frames - self.start).astype(np.float64) / float(fps)
+
+    def __str__(self) -> str:
+        return f"{self.start}-{self.end}"
+
+
+def parse_frames(text: str) -> FrameRange:
+    """``"1-120"`` → FrameRange(1, 120) (negative frames allowed: ``"-10-20"``)."""
+    m = re.fullmatch(r"\s*(-?\d+)\s*(?:-|:|\.\.)\s*(-?\d+)\s*", str(text))
+    if not m:
+        raise UserError(f"frame range {text!r}: expected START-END, e.g. 1-120")
+    return FrameRange(int(m.group(1)), int(m.group(2)))
+
+
+def parse_frame_list(text: str) -> list[FrameRange]:
+    """``"1-120,200-260"`` → a batch of frame ranges (each baked as its own simulation)."""
+    parts = [p for p in str(text).split(",") if p.strip()]
+    if not parts:
+        raise UserError("no frame range given")
+    return [parse_frames(p) for p in parts]
+
+
+# --------------------------------------------------------------------------- the object as arrays
+@dataclass
+class BakeObject:
+    """A Blender mesh object as plain arrays.
+
+    name: the object's name.
+    rest_local: (N, 3) float64 rest vertex positions in the object's local space (Blender units).
+    triangles: (F, 3) int64 vertex indices of the triangulated faces.
+    matrix_world: (4, 4) float64 the object's world matrix (Blender units).
+    unit_scale: metres per Blender unit (the scene's unit scale).
+    properties: the object's bake settings as plain values (material, etc.; free-form).
+    """
+
+    name: str
+    rest_local: np.ndarray
+    triangles: np.ndarray
+    matrix_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    unit_scale: float = 1.0
+    properties: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.rest_local = np.asarray(self.rest_local, dtype=np.float64).reshape(-1, 3)
+        self.triangles = np.asarray(self.triangles, dtype=np.int64).reshape(-1, 3)
+        self.matrix_world = np.asarray(self.matrix_world, dtype=np.float64).reshape(4, 4)
+        self.unit_scale = float(self.unit_scale)
+        if len(self.rest_local) == 0:
+            raise UserError(f"object '{self.name}': the mesh has no vertices")
+        if len(self.triangles) == 0:
+            raise UserError(f"object '{self.name}': the mesh has no faces (only loose vertices or edges); "
+                            "a solid needs a closed surface")
+        if not np.all(np.isfinite(self.rest_local)):
+            raise UserError(f"object '{self.name}': the mesh has NaN or infinite vertex positions")
+        if self.triangles.min() < 0 or self.triangles.max() >= len(self.rest_local):
+            raise UserError(f"object '{self.name}': face indices out of range")
+        if not (np.isfinite(self.unit_scale) and self.unit_scale > 0):
+            raise UserError(f"the scene's unit scale must be positive, got {self.unit_scale!r}")
+        if not np.all(np.isfinite(self.matrix_world)):
+            raise UserError(f"object '{self.name}': its transform contains NaN/inf")
+        det = float(np.linalg.det(self.matrix_world[:3, :3]))
+        if abs(det) < 1e-30:
+            raise UserError(f"object '{self.name}' has a zero scale on some axis (its transform is singular); "
+                            "set its scale to non-zero values")
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.rest_local.shape[0])
+
+    @property
+    def world_from_local(self) -> np.ndarray:
+        """(4, 4) float64: Blender-local coordinates → world metres."""
+        s = np.diag([self.unit_scale] * 3 + [1.0])
+        return s @ self.matrix_world
+
+    @property
+    def local_from_world(self) -> np.ndarray:
+        """(4, 4) float64: world metres → Blender-local coordinates."""
+        return np.linalg.inv(self.world_from_local)
+
+    def to_world(self, local: np.ndarray) -> np.ndarray:
+        """(..., 3) local (Blender units) → (..., 3) float64 world metres."""
+        m = self.world_from_local
+        return np.asarray(local, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+
+    def to_local(self, world: np.ndarray) -> np.ndarray:
+        """(..., 3) world metres → (..., 3) float64 local Blender units."""
+        m = self.local_from_world
+        return np.asarray(world, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+
+    @property
+    def rest_world(self) -> np.ndarray:
+        """(N, 3) float64 rest vertex positions in world metres."""
+        return self.to_world(self.rest_local)
+
+    @property
+    def size(self) -> float:
+        """Largest extent of the world-space bounding box, metres."""
+        w = self.rest_world
+        return float(np.max(w.max(0) - w.min(0)))
+
+
+def check_size(obj: BakeObject) -> list[str]:
+    """Refuse absurd sizes, warn about unusual ones (returns the warnings)."""
+    size = obj.size
+    lo, hi = SIZE_REFUSE_RANGE
+    if size <= 0:
+        raise UserError(f"object '{obj.name}' has zero size (all its vertices coincide)")
+    if size < lo or size > hi:
+        raise UserError(f"object '{obj.name}' is {size:.3g} m across in the world, outside the range UniPixie "
+                        f"simulates ({lo:g} m to {hi:g} m): check the object's scale and the scene's unit scale "
+                        "(Scene Properties > Units)")
+    wlo, whi = SIZE_WARN_RANGE
+    if size < wlo or size > whi:
+        return [f"object '{obj.name}' is {size:.3g} m across: the physics is simulated at this real-world size "
+                "(object scale and scene unit scale applied); if that is not intended, change the scale"]
+    return []
+
+
+def build_body(obj: BakeObject, solver: str = "mpm", repair: bool = True):
+    """The solid to simulate: a closed world-space mesh whose vertices are the tracked points.
+
+    Returns ``(body, warnings)``.  Zero-area faces are removed and small holes filled (with a
+    warning); a mesh that stays open after repair is refused (every solver fills the inside of
+    the surface with material), with a message that says how to close it.
+    """
+    import trimesh
+
+    from ..solvers.body import Body
+
+    warnings = check_size(obj)
+    world = obj.rest_world
+    mesh = trimesh.Trimesh(vertices=world, faces=obj.triangles, process=False)
+    area = mesh.area_faces
+    if not np.any(area > 0):
+        raise UserError(f"object '{obj.name}': every face has zero area (the mesh is flat to a line or point)")
+    body = Body.from_mesh(mesh, tracked_points=world, repair=repair)
+    open_note = [w for w in body.warnings if "not closed" in w]
+    if open_note:
+        edges = _boundary_edge_count(body.mesh)
+        raise UserError(f"object '{obj.name}': the mesh is open ({edges} boundary edges remain after filling holes), "
+                        f"so it has no inside for the {solver} solver to fill with material; close it "
+                        "(Edit Mode > Select All > Mesh > Clean Up > Fill Holes, or add a Solidify modifier and apply it)")
+    if float(body.mesh.volume) <= 0:
+        raise UserError(f"object '{obj.name}': the closed mesh encloses no volume")
+    return body, warnings + [f"object '{obj.name}': {w}" for w in body.warnings]
+
+
+def _boundary_edge_count(mesh) -> int:
+    edges = np.sort(mesh.edges, axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int(np.sum(counts == 1))
+
+
+# --------------------------------------------------------------------------- material sources
+@dataclass
+class ResolvedMaterial:
+    """A material for one bake.
+
+    spec: what the solver's ``prepare`` takes (HomogeneousMaterial, PointMaterial or a world-space
+        MaterialField).
+    settings: solver settings the source supplies (e.g. predicted LBS skinning parameters); merged
+        under the user's explicit settings.
+    description: one line for reports and the bake record.
+    warnings: things the user should know.
+    """
+
+    spec: object
+    settings: dict = field(default_factory=dict)
+    description: str = ""
+    warnings: list = field(default_factory=list)
+
+
+class MaterialSource:
+    """Where a bake's material comes from.  Subclasses implement :meth:`resolve`."""
+
+    kind: str = ""
+
+    def resolve(self, obj: BakeObject, alpha: Optional[float], solver: str) -> ResolvedMaterial:  # pragma: no cover
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+@dataclass
+class HomogeneousSource(MaterialSource):
+    """One material for the whole object: E Pa, ν, density kg/m³ and a class from the registry.
+
+    α does not change a homogeneous material (it is recorded only)."""
+
+    E: float = DEFAULT_HOMOGENEOUS["E"]
+    nu: float = DEFAULT_HOMOGENEOUS["nu"]
+    density: float = DEFAULT_HOMOGENEOUS["density"]
+    material: str = DEFAULT_HOMOGENEOUS["material"]
+    kind = "homogeneous"
+
+    def spec(self):
+        from ..solvers.material_sampling import HomogeneousMaterial
+
+        return HomogeneousMaterial(self.E, self.nu, self.density, self.material)
+
+    def resolve(self, obj, alpha, solver):
+        from ..solvers import materials
+
+        spec = self.spec()
+        cls = materials.get(spec.material)
+        if not cls.simulated:
+            raise UserError(f"material class '{cls.name}' carries no mass and cannot be simulated; choose another class")
+        return ResolvedMaterial(spec, description=f"homogeneous {cls.name}: E {spec.E:.4g} Pa, ν {spec.nu:.3g}, "
+                                                  f"density {spec.density:.4g} kg/m³")
+
+    def to_dict(self) -> dict:
+        return {"source": "homogeneous", "E": self.E, "nu": self.nu, "density": self.density, "class": self.material}
+
+
+@dataclass
+class FieldFileSource(MaterialSource):
+    """A :class:`~unipixie.core.types.MaterialField` file.
+
+    The field lives in the object's normalised cube (:mod:`unipixie.core.normalise`) unless its
+    ``meta["space"]`` says ``"world"``; it is mapped onto the object's current world-space bounding box.
+    """
+
+    path: str = ""
+    kind = "field"
+
+    def resolve(self, obj, alpha, solver):
+        from .normalise import Normalisation
+        from .types import MaterialField
+
+        if not self.path:
+            raise UserError("no material field file given (set one in the panel or pass --material-file)")
+        fieldd = MaterialField.load(self.path)
+        warnings = []
+        if fieldd.meta.get("space") == "world":
+            world = fieldd
+        else:
+            norm = Normalisation.from_points(obj.rest_world)
+            recorded = fieldd.meta.get("normalisation")
+            if recorded:
+                rec = Normalisation.from_dict(recorded)
+                if (abs(rec.scale - norm.scale) > 1e-3 * norm.scale
+                        or np.linalg.norm(np.subtract(rec.centre, norm.centre)) > 1e-3 * norm.scale):
+                    warnings.append(f"the material field {Path(self.path).name} was made for a different placement "
+                                    "or size of the object; it is mapped onto the object's current bounding box")
+            world = norm.field_to_world(fieldd)
+        if alpha is not None and np.isfinite(fieldd.alpha) and abs(float(alpha) - fieldd.alpha) > 1e-6:
+            warnings.append(f"the material field was predicted for α = {fieldd.alpha:g}, not the requested "
+                            f"α = {float(alpha):g}; the file is used as it is")
+        desc = (f"field {Path(self.path).name}: {int(fieldd.occupancy.sum())} voxels, E {float(np.min(fieldd.E)):.3g}"
+                f"–{float(np.max(fieldd.E)):.3g} Pa" + (f", α {fieldd.alpha:g}" if np.isfinite(fieldd.alpha) else ""))
+        return ResolvedMaterial(world, description=desc, warnings=warnings)
+
+    def to_dict(self) -> dict:
+        return {"source": "field", "file": str(self.path)}
+
+
+MaterialPredictor = Callable[[BakeObject, float, str], ResolvedMaterial]
+"""``predictor(obj, alpha, solver) -> ResolvedMaterial``: the model's material for an object at α."""
+
+_PREDICTORS: list[MaterialPredictor] = []
+
+
+def register_material_predictor(predictor: MaterialPredictor) -> MaterialPredictor:
+    """Make the model's prediction available to bakes (``material source = model``).
+
+    The predictor receives the object as arrays, α in [0, 1] and the solver name, and returns a
+    :class:`ResolvedMaterial` (a world-space material spec plus solver settings such as LBS
+    skinning parameters).  The latest registration wins.  Usable as a decorator.
+    """
+    if not callable(predictor):
+        raise TypeError("a material predictor must be callable")
+    _PREDICTORS.append(predictor)
+    return predictor
+
+
+def unregister_material_predictor(predictor: MaterialPredictor) -> None:
+    if predictor in _PREDICTORS:
+        _PREDICTORS.remove(predictor)
+
+
+@dataclass
+class ModelSource(MaterialSource):
+    """The model's material at α (through the predictor registered with :func:`register_material_predictor`)."""
+
+    kind = "model"
+
+    def resolve(self, obj, alpha, solver):
+        if alpha is None:
+            raise UserError("the model's material needs α (a value in [0, 1]); pass --alpha or set α in the panel")
+        alpha = float(alpha)
+        if not 0.0 <= alpha <= 1.0:
+            raise UserError(f"α must lie in [0, 1], got {alpha:g}")
+        if not _PREDICTORS:
+            raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model, and no model predictor "
+                            "is available in this session (no trained model is installed or loaded); bake with a "
+                            "homogeneous material (--E/--nu/--density/--material-class) or a material field file "
+                            "(--material-file) instead")
+        resolved = _PREDICTORS[-1](obj, alpha, solver)
+        if not isinstance(resolved, ResolvedMaterial):
+            raise TypeError(f"material predictor returned {type(resolved).__name__}, expected ResolvedMaterial")
+        return resolved
+
+    def to_dict(self) -> dict:
+        return {"source": "model"}
+
+
+def material_source_from_dict(d) -> MaterialSource:
+    """Parse a manifest's ``material`` value: ``"model"``, ``{"file": path}`` or
+    ``{"E": .., "nu": .., "density": .., "class": ..}`` (missing keys take the panel defaults)."""
+    if d is None or d == "model" or (isinstance(d, dict) and d.get("source") == "model"):
+        return ModelSource()
+    if isinstance(d, str):
+        return FieldFileSource(d)
+    if not isinstance(d, dict):
+        raise UserError(f"'material' must be \"model\", a field file path or an object with E/nu/density/class, got {d!r}")
+    if "file" in d or d.get("source") == "field":
+        if not d.get("file"):
+            raise UserError("'material': a field source needs 'file'")
+        return FieldFileSource(str(d["file"]))
+    unknown = set(d) - {"source", "E", "nu", "density", "class", "material"}
+    if unknown:
+        raise UserError(f"'material' has unknown key(s) {sorted(unknown)}; use E, nu, density, class or file")
+    try:
+        return HomogeneousSource(E=float(d.get("E", DEFAULT_HOMOGENEOUS["E"])),
+                                 nu=float(d.get("nu", DEFAULT_HOMOGENEOUS["nu"])),
+                                 density=float(d.get("density", DEFAULT_HOMOGENEOUS["density"])),
+                                 material=str(d.get("class", d.get("material", DEFAULT_HOMOGENEOUS["material"]))))
+    except (TypeError, ValueError):
+        raise UserError(f"'material': E, nu and density must be numbers, got {d!r}") from None
+
+
+# --------------------------------------------------------------------------- the request and its simulation
+@dataclass
+class BakeOptions:
+    """Everything a bake needs besides the object and the scenario.
+
+    solver: ``"mpm"``, ``"lbs"`` or ``"spring_mass"``.
+    frames: the scene frames to bake; fps: frames per second of the scene.
+    material: a :class:`MaterialSource`; alpha: the soft-to-stiff control in [0, 1] (or ``None``).
+    effects: registry effects (``solvers.effects.Effect``) or their CLI specs (``"linear_drag:c=0.5"``).
+    device: ``cpu`` / ``cuda`` / ``cuda:N`` / ``auto``.
+    output: one of :data:`OUTPUT_MODES`.  interpolation: one of :data:`INTERPOLATIONS`.
+    particles: MPM only — also make a point-cloud object of the particles with attributes.
+    armature_tolerance: LBS armature error allowed, as a fraction of the object's size.
+    solver_settings: passed to the solver's ``prepare(settings=...)`` (dict or settings object).
+    cache_dir: where Mesh Cache PC2 files go (``None``: next to the .blend).
+    """
+
+    solver: str = "mpm"
+    frames: FrameRange = field(default_factory=lambda: FrameRange(1, 48))
+    fps: float = 24.0
+    material: MaterialSource = field(default_factory=HomogeneousSource)
+    alpha: Optional[float] = None
+    effects: list = field(default_factory=list)
+    device: str = "cpu"
+    output: str = "auto"
+    interpolation: str = "LINEAR"
+    particles: bool = False
+    armature_tolerance: float = ARMATURE_TOLERANCE
+    solver_settings: object = None
+    cache_dir: Optional[str] = None
+
+    def __post_init__(self):
+        from ..solvers import effects as effects_mod
+        from ..solvers.api import canonical_solver
+
+        self.solver = canonical_solver(self.solver)
+        if isinstance(self.frames, str):
+            self.frames = parse_frames(self.frames)
+        elif not isinstance(self.frames, FrameRange):
+            a, b = self.frames
+            self.frames = FrameRange(int(a), int(b))
+        self.fps = float(self.fps)
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise UserError(f"frames per second must be positive, got {self.fps!r}")
+        if self.alpha is not None:
+            self.alpha = float(self.alpha)
+            if not 0.0 <= self.alpha <= 1.0:
+                raise UserError(f"α must lie in [0, 1], got {self.alpha:g}")
+        parsed = []
+        for e in self.effects or []:
+            if isinstance(e, str):
+                parsed.append(effects_mod.parse(e))
+            elif isinstance(e, dict):
+                parsed.append(effects_mod.from_dict(e))
+            else:
+                parsed.append(e)
+        effects_mod.check_supported(parsed, self.solver)
+        self.effects = parsed
+        if self.output not in OUTPUT_MODES:
+            raise UserError(f"unknown output {self.output!r}; choose one of {', '.join(OUTPUT_MODES)}")
+        if self.output == "armature" and self.solver != "lbs":
+            raise UserError(f"an armature bake needs the LBS solver (its handles become bones), not {self.solver}")
+        self.interpolation = str(self.interpolation).upper()
+        if self.interpolation not in INTERPOLATIONS:
+            raise UserError(f"unknown interpolation {self.interpolation!r}; choose LINEAR or CONSTANT")
+        if self.particles and self.solver != "mpm":
+            raise UserError("a particle object is made for MPM bakes only (other solvers have no particles)")
+        self.armature_tolerance = float(self.armature_tolerance)
+        if not self.armature_tolerance >= 0:
+            raise UserError("the armature tolerance must be a non-negative fraction of the object's size")
+
+    def times(self) -> np.ndarray:
+        return self.frames.times(self.fps)
+
+
+@dataclass
+class SimulationResult:
+    """What the Blender writer needs from a simulation.
+
+    trajectory: the solver's Trajectory (world metres; positions of the object's vertices).
+    skinning_weights: LBS only — (N, H+1) float64 handle weights of the vertices, constant handle first,
+        such that ``x_t = Σ_h w_h · handle_transforms[t, h] @ [x_0; 1]``.
+    material_description / warnings / seconds: for the report and the bake record.
+    """
+
+    trajectory: object
+    skinning_weights: Optional[np.ndarray] = None
+    material_description: str = ""
+    warnings: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional[Progress] = None) -> SimulationResult:
+    """Resolve the material, build the body, run the solver (cancellable through ``progress``).
+
+    Raises :class:`UserError` for bad input and
+    :class:`~unipixie.core.errors.CancelledError` when ``progress`` is cancelled.
+    """
+    from ..solvers import api
+    from ..solvers.warp_runtime import resolve_device
+
+    progress = progress or silent()
+    t0 = time.perf_counter()
+    progress.set_status("checking the mesh")
+    body, warnings = build_body(obj, options.solver)
+    if scenario.ground_height is not None:
+        lowest = float(body.rest_points[:, 2].min())
+        if lowest < scenario.ground_height - 1e-6 * max(obj.size, 1e-9):
+            warnings.append(f"object '{obj.name}' starts {scenario.ground_height - lowest:.3g} m below the ground "
+                            "plane; the ground will push it up")
+    progress.set_status("resolving the material")
+    resolved = options.material.resolve(obj, options.alpha, options.solver)
+    warnings.extend(resolved.warnings)
+    settings = _merge_settings(resolved.settings, options.solver_settings)
+    device = resolve_device(options.device)
+    progress.set_status(f"preparing the {options.solver} simulation")
+    sim = api.prepare(options.solver, body, resolved.spec, scenario, options.times(), device=device,
+                      settings=settings, progress=progress)
+    progress.set_status(f"simulating {options.frames.count} frames")
+    traj = sim.run(options.effects, progress=progress, particle_states=bool(options.particles))
+    check_trajectory(traj, obj.vertex_count, options.frames.count, obj.name)
+    weights = None
+    if options.solver == "lbs":
+        weights = lbs_vertex_weights(sim, traj, obj)
+    return SimulationResult(traj, skinning_weights=weights, material_description=resolved.description,
+                            warnings=warnings, seconds=time.perf_counter() - t0)
+
+
+def _merge_settings(source_settings, user_settings):
+    if not source_settings:
+        return user_settings
+    if user_settings is None:
+        return dict(source_settings)
+    if isinstance(user_settings, dict):
+        return {**source_settings, **user_settings}
+    for k, v in source_settings.items():  # a settings object: fill what the user left at its default
+        if hasattr(user_settings, k):
+            setattr(user_settings, k, v)
+    return user_settings
+
+
+def check_trajectory(traj, n_vertices: int, n_frames: int, name: str = "") -> None:
+    """Refuse a trajectory that does not fit the object (wrong shapes, NaN): never write garbage."""
+    pos = np.asarray(traj.positions)
+    if pos.shape != (n_frames, n_vertices, 3):
+        raise UserError(f"object '{name}': the solver returned positions of shape {pos.shape}, expected "
+                        f"{(n_frames, n_vertices, 3)} (frames, vertices, 3)")
+    if not np.all(np.isfinite(pos)):
+        from .errors import SimulationDiverged
+
+        bad_t = int(np.argmax(~np.all(np.isfinite(pos), axis=(1, 2))))
+        raise SimulationDiverged(f"object '{name}': the simulation produced NaN/inf positions at frame index {bad_t}; "
+                                 "try a smaller time step or a softer material")
+
+
+def lbs_vertex_weights(sim, traj, obj: BakeObject) -> Optional[np.ndarray]:
+    """(N, H+1) skinning weights of the vertices (constant handle first), if the LBS simulation exposes them.
+
+    Looks for, in order: ``traj.particle_attributes["vertex_weights"]`` /
+    ``traj.meta["vertex_weights"]``, ``sim.tracked_weights`` / ``sim.vertex_weights`` /
+    ``sim.point_weights(points)``.  Returns ``None`` when none exists (the bake then uses shape keys).
+    """
+    H1 = None if traj.handle_transforms is None else traj.handle_transforms.shape[1]
+    candidates = [traj.particle_attributes.get("vertex_weights") if traj.particle_attributes else None,
+                  traj.meta.get("vertex_weights") if isinstance(traj.meta, dict) else None]
+    for attr in ("tracked_weights", "vertex_weights"):
+        candidates.append(getattr(sim, attr, None))
+    fn = getattr(sim, "point_weights", None) or getattr(sim, "weights_at", None)
+    for c in candidates:
+        if c is not None:
+            w = np.asarray(c, dtype=np.float64)
+            if H1 is not None and w.shape == (obj.vertex_count, H1):
+                return w
+    if callable(fn) and H1 is not None:
+        w = np.asarray(fn(obj.rest_world), dtype=np.float64)
+        if w.shape == (obj.vertex_count, H1):
+            return w
+    return None
+
+
+class BackgroundRun:
+    """Run ``work(progress)`` in a daemon thread; the caller polls and may cancel.
+
+    The Blender operator yields between polls so the UI stays responsive; cancelling sets the
+    shared :class:`Progress`'s flag, which the solver checks at every step.
+    """
+
+    def __init__(self, work: Callable[[Progress], object], description: str = ""):
+        self.progress = Progress(description=description, show_bar=False)
+        self._work = work
+        self._result = None
+        self._error: Optional[BaseException] = None
+        self._thread = threading.Thread(target=self._main, name="unipixie-bake", daemon=True)
+
+    def _main(self):
+        try:
+            self._result = self._work(self.progress)
+        except BaseException as exc:  # handed to the caller's thread
+            self._error = exc
+
+    def start(self) -> "BackgroundRun":
+        self._thread.start()
+        return self
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout: Optional[float] = None) -> bool:
+        self._thread.join(timeout)
+        return self.done
+
+    @property
+    def fraction(self) -> float:
+        return self.progress.fraction
+
+    @property
+    def status(self) -> str:
+        return self.progress.status or ""
+
+    def cancel(self, wait: bool = True) -> None:
+        self.progress.cancel()
+        if wait and self._thread.is_alive():
+            self._thread.join()
+
+    def result(self):
+        """The work's return value; re-raises its exception in the caller's thread."""
+        if not self.done:
+            raise RuntimeError("the background run has not finished")
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+
+# --------------------------------------------------------------------------- output planning
+def choose_output(solver: str, requested: str, n_vertices: int, n_frames: int, *, has_other_shape_keys: bool = False,
+                  mesh_shared: bool = False) -> tuple[str, list[str]]:
+    """Pick how to store the motion; returns ``(mode, notes)``.
+
+    ``auto``: LBS → ``armature`` (the writer falls back to shape keys/Mesh Cache when the handle
+    transforms are not representable); otherwise shape keys unless the bake is large
+    (> :data:`SHAPE_KEY_VERTEX_FRAME_LIMIT` vertex-frames or > :data:`MESH_CACHE_FRAME_LIMIT` frames),
+    the mesh already has shape keys of its own, or the mesh data is shared by several objects —
+    those use a Mesh Cache modifier, which leaves the mesh data untouched.
+    """
+    notes: list[str] = []
+    if requested not in OUTPUT_MODES:
+        raise UserError(f"unknown output {requested!r}; choose one of {', '.join(OUTPUT_MODES)}")
+    if requested == "armature" and solver != "lbs":
+        raise UserError(f"an armature bake needs the LBS solver, not {solver}")
+    if requested == "shape_keys":
+        if has_other_shape_keys:
+            raise UserError("the mesh already has shape keys of its own; a shape-key bake would mix with them — "
+                            "choose the Mesh Cache output (or remove the mesh's shape keys)")
+        if mesh_shared:
+            raise UserError("the mesh data is shared by several objects; shape keys would move all of them — "
+                            "choose the Mesh Cache output (or make the mesh single-user)")
+        return "shape_keys", notes
+    if requested in ("mesh_cache", "armature"):
+        return requested, notes
+    if solver == "lbs":
+        return "armature", notes
+    return vertex_output(n_vertices, n_frames, has_other_shape_keys, mesh_shared, notes), notes
+
+
+def vertex_output(n_vertices: int, n_frames: int, has_other_shape_keys: bool, mesh_shared: bool,
+                  notes: list[str]) -> str:
+    """Shape keys or Mesh Cache for per-vertex motion (the ``auto`` rule of :func:`choose_output`)."""
+    if has_other_shape_keys:
+        notes.append("the mesh has shape keys of its own: the motion is stored in a Mesh Cache (PC2) instead")
+        return "mesh_cache"
+    if mesh_shared:
+        notes.append("the mesh data is shared by several objects: the motion is stored in a Mesh Cache (PC2) instead")
+        return "mesh_cache"
+    if n_vertices * n_frames > SHAPE_KEY_VERTEX_FRAME_LIMIT or n_frames > MESH_CACHE_FRAME_LIMIT:
+        notes.append(f"{n_vertices} vertices × {n_frames} frames is a large bake: stored in a Mesh Cache (PC2)")
+        return "mesh_cache"
+    return "shape_keys"
+
+
+def trajectory_to_local(obj: BakeObject, positions: np.ndarray) -> np.ndarray:
+    """(T, N, 3) world metres → (T, N, 3) float32 object-local Blender units."""
+    return obj.to_local(np.asarray(positions, dtype=np.float64)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- LBS handles → bones
+@dataclass
+class ArmaturePlan:
+    """Bones that reproduce an LBS motion in Blender's Armature modifier (object-local space).
+
+    rest: (B, 4, 4) float64 bone rest matrices (``bone.matrix_local``): rotation columns = the bone's
+        x, y, z axes, translation = its head.
+    location / rotation / scale: (T, B, 3), (T, B, 4) w-x-y-z quaternions, (T, B, 3) — the pose
+        channels (``matrix_basis`` = T·R·S) per frame.
+    weights: (N, B) float32 vertex-group weights in [0, 1] (Blender normalises them per vertex).
+    max_error: largest distance (metres) between the armature's result and the trajectory.
+    bone_length: display length of the bones, Blender units.
+    """
+
+    rest: np.ndarray
+    location: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+    weights: np.ndarray
+    max_error: float
+    bone_length: float
+
+    @property
+    def bone_count(self) -> int:
+        return int(self.rest.shape[0])
+
+
+def polar_decompose(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(…, 3, 3) → (R, P) with A = R P, R a rotation (det +1 where det A > 0), P symmetric (scipy-free SVD)."""
+    U, s, Vt = np.linalg.svd(A)
+    R = U @ Vt
+    P = np.swapaxes(Vt, -1, -2) @ (s[..., :, None] * Vt)
+    return R, P
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(…, 3, 3) rotation matrices → (…, 4) unit quaternions (w, x, y, z), Blender's order."""
+    from scipy.spatial.transform import Rotation
+
+    shape = R.shape[:-2]
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()  # x, y, z, w
+    return np.concatenate([q[:, 3:4], q[:, :3]], axis=1).reshape(*shape, 4)
+
+
+def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    shape = q.shape[:-1]
+    q = q.reshape(-1, 4)
+    return Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], axis=1)).as_matrix().reshape(*shape, 3, 3)
+
+
+def armature_deform(rest_local: np.ndarray, weights: np.ndarray, deform: np.ndarray) -> np.ndarray:
+    """What Blender's Armature modifier computes (linear blending, vertex groups, no preserve-volume).
+
+    rest_local: (N, 3); weights: (N, B) ≥ 0; deform: (T, B, 4, 4) bone deform matrices
+    (pose matrix × rest matrix⁻¹).  Vertices with total weight ≤ 1e-4 stay at rest (as in Blender).
+    Returns (T, N, 3) float64.
+    """
+    x = np.asarray(rest_local, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    total = w.sum(1)
+    ok = total > 1e-4
+    wn = np.where(ok[:, None], w / np.where(ok, total, 1.0)[:, None], 0.0)
+    A = deform[..., :3, :3]
+    b = deform[..., :3, 3]
+    # per frame: Σ_b wn[n, b] (A_b x_n + b_b)
+    moved = np.einsum("nb,tbij,nj->tni", wn, A, x) + np.einsum("nb,tbi->tni", wn, b)
+    return np.where(ok[None, :, None], moved, x[None])
+
+
+def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.ndarray, positions: np.ndarray,
+                  tolerance: float = ARMATURE_TOLERANCE) -> tuple[Optional[ArmaturePlan], str]:
+    """Map LBS handles to bones, or explain why they cannot be.
+
+    weights: (N, H) vertex weights of the handles (constant handle included).
+    handle_transforms: (T, H, 3, 4) world-space affine maps, ``x_t = Σ_h w_h A_h [x_0; 1]``.
+    positions: (T, N, 3) the trajectory (world metres) the armature must reproduce.
+    tolerance: allowed error as a fraction of the object's size.
+
+    How it maps: each handle's world affine map is conjugated into the object's local space
+    (``L = S⁻¹ A S`` with S the object's world-from-local matrix), then expressed in the bone's rest
+    frame ``G = R₀⁻¹ L R₀`` and split by the polar decomposition ``G₃ = Q P`` into a rotation Q and a
+    symmetric stretch P.  A bone carries translation, rotation and a scale along its own three axes,
+    so P is replaced by its diagonal in the bone frame; R₀ is chosen per bone as the principal axes of
+    the handle's average stretch so that, where the stretch keeps its axes, nothing is lost.  Blender
+    clamps vertex-group weights to [0, 1] and normalises them per vertex, so the weights are clamped
+    and normalised too.  The resulting motion is evaluated exactly as the Armature modifier does and
+    compared with the trajectory; if the largest error exceeds ``tolerance × size`` (shear,
+    stretch along rotating axes, reflections, negative or non-normalised weights), the plan is
+    refused and the caller stores the motion per vertex.
+    Returns ``(plan, "")`` or ``(None, reason)``.
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    A = np.asarray(handle_transforms, dtype=np.float64)
+    T, H = A.shape[:2]
+    N = obj.vertex_count
+    if W.shape != (N, H):
+        return None, f"the skinning weights have shape {W.shape}, expected {(N, H)}"
+    size_m = max(obj.size, 1e-12)
+    S = obj.world_from_local
+    S_inv = np.linalg.inv(S)
+    A4 = np.zeros((T, H, 4, 4))
+    A4[..., :3, :] = A
+    A4[..., 3, 3] = 1.0
+    L = S_inv @ A4 @ S  # (T, H, 4, 4) local-space handle maps
+    det = np.linalg.det(L[..., :3, :3])
+    if np.any(det <= 0):
+        return None, "a handle transform mirrors or collapses space, which a bone cannot do"
+    Wc = np.clip(W, 0.0, 1.0)
+    R_all, P_all = polar_decompose(L[..., :3, :3])
+    # bone frame: principal axes of the mean stretch (sorted, right-handed)
+    rest = np.zeros((H, 4, 4))
+    x0 = obj.rest_local
+    wsum = Wc.sum(0)
+    for h in range(H):
+        evals, evecs = np.linalg.eigh(P_all[:, h].mean(0))
+        R0 = evecs[:, ::-1]
+        if np.linalg.det(R0) < 0:
+            R0[:, 2] = -R0[:, 2]
+        rest[h, :3, :3] = R0
+        head = (Wc[:, h:h + 1] * x0).sum(0) / wsum[h] if wsum[h] > 1e-9 else x0.mean(0)
+        rest[h, :3, 3] = head
+        rest[h, 3, 3] = 1.0
+    rest_inv = np.linalg.inv(rest)
+    G = rest_inv[None] @ L @ rest[None]  # (T, H, 4, 4) in bone-rest frames
+    Q, P = polar_decompose(G[..., :3, :3])
+    scale = np.diagonal(P, axis1=-2, axis2=-1).copy()
+    if np.any(scale <= 0):
+        return None, "a handle's stretch is not positive along the bone's axes"
+    location = G[..., :3, 3].copy()
+    quat = _quat_from_matrix(Q)
+    # keep quaternions on one hemisphere frame to frame so interpolation takes the short way
+    for t in range(1, T):
+        flip = np.sum(quat[t] * quat[t - 1], axis=-1) < 0
+        quat[t, flip] *= -1.0
+    # rebuild exactly what Blender will evaluate and compare with the trajectory
+    basis = np.zeros((T, H, 4, 4))
+    basis[..., :3, :3] = _matrix_from_quat(quat) * scale[..., None, :]
+    basis[..., :3, 3] = location
+    basis[..., 3, 3] = 1.0
+    deform = rest[None] @ basis @ rest_inv[None]
+    moved_local = armature_deform(x0, Wc, deform)
+    moved_world = obj.to_world(moved_local)
+    err = float(np.max(np.linalg.norm(moved_world - np.asarray(positions, dtype=np.float64), axis=-1)))
+    limit = tolerance * size_m
+    if not err <= limit:
+        return None, (f"the LBS handles are not representable by bones within {limit:.3g} m (largest error "
+                      f"{err:.3g} m: shear, stretch along turning axes or weights outside [0, 1])")
+    bone_length = 0.1 * float(np.max(x0.max(0) - x0.min(0)) or 1.0)
+    return ArmaturePlan(rest=rest, location=location, rotation=quat, scale=scale, weights=Wc.astype(np.float32),
+                        max_error=err, bone_length=bone_length), ""
+
+
+# --------------------------------------------------------------------------- PC2 point caches
+PC2_SIGNATURE = b"POINTCACHE2\0"
+PC2_VERSION = 1
+_PC2_HEADER = np.dtype([("signature", "S12"), ("version", "<i4"), ("points", "<i4"), ("start", "<f4"),
+                        ("rate", "<f4"), ("samples", "<i4")])
+
+
+def write_pc2(path, positions: np.ndarray, start_frame: float = 0.0, sample_rate: float = 1.0) -> Path:
+    """Write a PC2 point cache (the format of Blender's Mesh Cache modifier and 3ds Max).
+
+    positions: (T, N, 3) float32, object-local coordinates.  start_frame / sample_rate: header fields
+    (frame of the first sample, frames between samples).  The file is written to a temporary name and
+    renamed, so a reader never sees a half-written cache.
+    """
+    pos = np.ascontiguousarray(np.asarray(positions, dtype="<f4"))
+    if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] < 1 or pos.shape[1] < 1:
+        raise UserError(f"a PC2 cache needs positions of shape (samples, points, 3), got {pos.shape}")
+    if not np.all(np.isfinite(pos)):
+        raise UserError("refusing to write NaN/inf positions into a PC2 cache")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = np.zeros((), dtype=_PC2_HEADER)
+    header["signature"] = PC2_SIGNATURE
+    header["version"] = PC2_VERSION
+    header["points"] = pos.shape[1]
+    header["start"] = float(start_frame)
+    header["rate"] = float(sample_rate)
+    header["samples"] = pos.shape[0]
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(header.tobytes())
+            f.write(pos.tobytes())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+@dataclass
+class PointCache:
+    """A PC2 file's content: positions (T, N, 3) float32, start frame and sample rate."""
+
+    positions: np.ndarray
+    start_frame: float
+    sample_rate: float
+
+
+def read_pc2(path) -> PointCache:
+    """Read a PC2 point cache; a malformed file is a :class:`UserError` naming what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: PC2 file not found")
+    size = path.stat().st_size
+    if size < _PC2_HEADER.itemsize:
+        raise UserError(f"{path}: too short for a PC2 header ({size} bytes)")
+    with open(path, "rb") as f:
+        header = np.frombuffer(f.read(_PC2_HEADER.itemsize), dtype=_PC2_HEADER)[0]
+        if bytes(header["signature"]).rstrip(b"\0") != PC2_SIGNATURE.rstrip(b"\0"):
+            raise UserError(f"{path}: not a PC2 file (signature {bytes(header['signature'])!r})")
+        n, t = int(header["points"]), int(header["samples"])
+        if n < 1 or t < 1:
+            raise UserError(f"{path}: PC2 header says {t} samples of {n} points")
+        expected = _PC2_HEADER.itemsize + 12 * n * t
+        if size != expected:
+            raise UserError(f"{path}: PC2 file is {size} bytes, its header promises {expected} ({t} × {n} points)")
+        data = np.frombuffer(f.read(), dtype="<f4").reshape(t, n, 3).astype(np.float32)
+    return PointCache(data, float(header["start"]), float(header["rate"]))
+
+
+# --------------------------------------------------------------------------- jobs, shards, manifests
+@dataclass
+class BakeJob:
+    """One object of one scene baked with one set of options, saved to ``out``.
+
+    scene: the .blend to open; object: the object's name; out: the .blend to save (several jobs
+    may share one ``out`` when they bake different objects of the same scene).
+    options: everything else (:class:`BakeOptions` fields except ``frames``/``fps``, which come
+    from ``frames`` here or the scene).
+    frames: ``None`` = the scene's frame range.
+    """
+
+    scene: str
+    object: str
+    out: str
+    solver: str = "mpm"
+    alpha: Optional[float] = None
+    frames: Optional[FrameRange] = None
+    effects: list = field(default_factory=list)
+    device: str = "cpu"
+    material: Optional[MaterialSource] = None
+    output: str = "auto"
+    interpolation: str = "LINEAR"
+    particles: bool = False
+    armature_tolerance: float = ARMATURE_TOLERANCE
+    solver_settings: Optional[dict] = None
+    scenario: dict = field(default_factory=dict)
+
+    def describe(self) -> str:
+        fr = f" frames {self.frames}" if self.frames else ""
+        a = f" α {self.alpha:g}" if self.alpha is not None else ""
+        return f"{Path(self.scene).name}:{self.object} {self.solver}{a}{fr} → {self.out}"
+
+    def to_dict(self) -> dict:
+        d = {"scene": self.scene, "object": self.object, "out": self.out, "solver": self.solver,
+             "alpha": self.alpha, "frames": str(self.frames) if self.frames else None,
+             "effects": [e if isinstance(e, str) else e.to_dict() for e in self.effects], "device": self.device,
+             "material": None if self.material is None else self.material.to_dict(), "output": self.output,
+             "interpolation": self.interpolation, "particles": self.particles,
+             "armature_tolerance": self.armature_tolerance, "settings": self.solver_settings,
+             "scenario": self.scenario}
+        return d
+
+
+JOB_KEYS = {"scene", "object", "objects", "out", "solver", "alpha", "frames", "effects", "device", "material",
+            "output", "interpolation", "particles", "armature_tolerance", "settings", "scenario"}
+SCENARIO_OVERRIDE_KEYS = {"gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box"}
+
+
+def expand_out(pattern: str, *, scene: str, obj: str, solver: str, alpha: Optional[float],
+               frames: Optional[FrameRange], index: int) -> str:
+    """Fill ``{scene}``, ``{object}``, ``{solver}``, ``{alpha}``, ``{frames}``, ``{start}``, ``{end}``, ``{job}``."""
+    values = {"scene": Path(scene).stem, "object": _safe_name(obj), "solver": solver,
+              "alpha": "" if alpha is None else f"{alpha:g}", "frames": str(frames) if frames else "scene",
+              "start": str(frames.start) if frames else "", "end": str(frames.end) if frames else "",
+              "job": f"{index:04d}"}
+    try:
+        return str(pattern).format(**values)
+    except (KeyError, IndexError, ValueError) as exc:
+        raise UserError(f"output name {pattern!r}: unknown placeholder {exc}; use {{{'}, {'.join(values)}}}") from None
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "object"
+
+
+def expand_jobs(scene: str, objects: Sequence[str], out: str, *, solver: str = "mpm",
+                alphas: Sequence[Optional[float]] = (None,), frame_ranges: Sequence[Optional[FrameRange]] = (None,),
+                **common) -> list[BakeJob]:
+    """The batch objects × frame ranges × α values, in that order (a stable order: shards rely on it)."""
+    if not objects:
+        raise UserError("no object to bake: give --object NAME (repeatable, wildcards allowed)")
+    jobs = []
+    for obj in objects:
+        for fr in frame_ranges:
+            for a in alphas:
+                jobs.append(BakeJob(scene=str(scene), object=obj, out=expand_out(out, scene=scene, obj=obj, solver=solver,
+                                                                                alpha=a, frames=fr, index=len(jobs)),
+                                    solver=solver, alpha=a, frames=fr, **common))
+    check_job_outputs(jobs)
+    return jobs
+
+
+def check_job_outputs(jobs: Sequence[BakeJob]) -> None:
+    """Two jobs writing the same object into the same output file would overwrite each other: refuse."""
+    seen: dict = {}
+    for j in jobs:
+        key = (os.path.abspath(j.out), j.object)
+        if key in seen:
+            raise UserError(f"jobs '{seen[key].describe()}' and '{j.describe()}' both write object '{j.object}' into "
+                            f"{j.out}; put a placeholder such as {{alpha}}, {{frames}} or {{job}} in the output name")
+        seen[key] = j
+        if os.path.abspath(j.out) == os.path.abspath(j.scene):
+            raise UserError(f"job '{j.describe()}' would overwrite its input scene; choose another --out")
+
+
+def group_jobs(jobs: Sequence[BakeJob]) -> list[list[BakeJob]]:
+    """Jobs grouped by (scene, out) — one group = open the scene once, bake, save once — in first-seen order."""
+    groups: dict = {}
+    for j in jobs:
+        key = (os.path.abspath(j.scene), os.path.abspath(j.out))
+        groups.setdefault(key, []).append(j)
+    for (scene, out), g in groups.items():
+        pass
+    outs: dict = {}
+    for (scene, out), g in groups.items():
+        if out in outs and outs[out] != scene:
+            raise UserError(f"two different scenes ({outs[out]} and {scene}) would be saved into the same file {out}")
+        outs[out] = scene
+    return list(groups.values())
+
+
+def shard_groups(groups: Sequence, shard: Optional[tuple[int, int]]) -> list:
+    """The part of a batch that shard ``(i, n)`` runs: groups ``i, i+n, i+2n, …`` (round-robin, stable).
+
+    Jobs are grouped by output file first (:func:`group_jobs`) so no two shards write the same file.
+    """
+    if shard is None:
+        return list(groups)
+    i, n = shard
+    if n <= 0 or not 0 <= i < n:
+        raise UserError(f"shard {i}/{n}: need 0 <= i < n")
+    return list(groups)[i::n]
+
+
+def select_objects(patterns: Sequence[str], available: Sequence[str]) -> list[str]:
+    """Object names matching the given names or shell wildcards (``Rock*``), in the order given; each must match."""
+    chosen: list[str] = []
+    for pat in patterns:
+        if any(c in pat for c in "*?["):
+            hits = sorted(n for n in available if fnmatch.fnmatchcase(n, pat))
+            if not hits:
+                raise UserError(f"no object matches {pat!r}; objects in the scene: {', '.join(sorted(available)) or 'none'}")
+        else:
+            if pat not in available:
+                raise UserError(f"no object named {pat!r} in the scene; objects: {', '.join(sorted(available)) or 'none'}")
+            hits = [pat]
+        chosen.extend(h for h in hits if h not in chosen)
+    return chosen
+
+
+def load_manifest(path) -> list[BakeJob]:
+    """Read a job manifest (format ``unipixie.bake-manifest/1``; schema in ``docs/baking.md``).
+
+    Relative paths (scene, out, material files) are relative to the manifest's folder.  A job may
+    name several objects (``"objects": [...]``, wildcards resolved when the scene is opened) and
+    may give ``"alpha"`` or ``"frames"`` as lists (a batch).  Errors name the job and key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: manifest not found")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: a manifest is a JSON object with 'format' and 'jobs'")
+    if doc.get("format") != MANIFEST_FORMAT:
+        raise UserError(f"{path}: key 'format' is {doc.get('format')!r}, expected {MANIFEST_FORMAT!r}")
+    defaults = doc.get("defaults", {}) or {}
+    jobs_in = doc.get("jobs")
+    if not isinstance(jobs_in, list) or not jobs_in:
+        raise UserError(f"{path}: key 'jobs' must be a non-empty list")
+    if not isinstance(defaults, dict):
+        raise UserError(f"{path}: key 'defaults' must be an object")
+    base = path.parent
+    jobs: list[BakeJob] = []
+    for k, raw in enumerate(jobs_in):
+        if not isinstance(raw, dict):
+            raise UserError(f"{path}: jobs[{k}] must be an object")
+        d = {**defaults, **raw}
+        where = f"{path}: jobs[{k}]"
+        unknown = set(d) - JOB_KEYS
+        if unknown:
+            raise UserError(f"{where}: unknown key(s) {sorted(unknown)}; known keys: {', '.join(sorted(JOB_KEYS))}")
+        for key in ("scene", "out"):
+            if not d.get(key):
+                raise UserError(f"{where}: key '{key}' is missing")
+        objects = d.get("objects", d.get("object"))
+        if isinstance(objects, str):
+            objects = [objects]
+        if not objects or not all(isinstance(o, str) for o in objects):
+            raise UserError(f"{where}: key 'object' (a name) or 'objects' (a list of names) is missing")
+        scene = str(_rel(base, d["scene"]))
+        alphas = d.get("alpha")
+        alphas = alphas if isinstance(alphas, list) else [alphas]
+        frames = d.get("frames")
+        if isinstance(frames, list):
+            frame_ranges = [parse_frames(f) for f in frames]
+        elif frames is None:
+            frame_ranges = [None]
+        else:
+            frame_ranges = parse_frame_list(str(frames))
+        material = d.get("material")
+        if isinstance(material, dict) and material.get("file"):
+            material = {**material, "file": str(_rel(base, material["file"]))}
+        elif isinstance(material, str) and material != "model":
+            material = str(_rel(base, material))
+        scen = d.get("scenario") or {}
+        if not isinstance(scen, dict) or set(scen) - SCENARIO_OVERRIDE_KEYS:
+            raise UserError(f"{where}: 'scenario' may set only {', '.join(sorted(SCENARIO_OVERRIDE_KEYS))}")
+        try:
+            for a in alphas:
+                if a is not None and not 0.0 <= float(a) <= 1.0:
+                    raise ValueError
+            alphas = [None if a is None else float(a) for a in alphas]
+        except (TypeError, ValueError):
+            raise UserError(f"{where}: 'alpha' must be a number in [0, 1] or a list of them") from None
+        common = dict(effects=list(d.get("effects", []) or []), device=str(d.get("device", "cpu")),
+                      material=material_source_from_dict(material) if "material" in d else None,
+                      output=str(d.get("output", "auto")), interpolation=str(d.get("interpolation", "LINEAR")),
+                      particles=bool(d.get("particles", False)),
+                      armature_tolerance=float(d.get("armature_tolerance", ARMATURE_TOLERANCE)),
+                      solver_settings=d.get("settings"), scenario=scen)
+        try:
+            new = expand_jobs(scene, objects, str(_rel(base, d["out"])), solver=str(d.get("solver", "mpm")),
+                              alphas=alphas, frame_ranges=frame_ranges, **common)
+        except UserError as exc:
+            raise UserError(f"{where}: {exc}") from None
+        jobs.extend(new)
+    check_job_outputs(jobs)
+    return jobs
+
+
+def _rel(base: Path, p) -> Path:
+    p = Path(os.path.expanduser(str(p)))
+    return p if p.is_absolute() else (base / p)
+
+
+# --------------------------------------------------------------------------- the bake record
+def make_record(**fields) -> str:
+    """The JSON stored on a baked object (:data:`BAKE_RECORD_KEY`): what was made, so clear_bake can undo it."""
+    doc = {"format": BAKE_RECORD_FORMAT}
+    doc.update(fields)
+    return json.dumps(doc, default=_json_default)
+
+
+def parse_record(text) -> Optional[dict]:
+    if not text:
+        return None
+    try:
+        doc = json.loads(str(text))
+    except json.JSONDecodeError:
+        return None
+    if not isinstance(doc, dict) or doc.get("format") != BAKE_RECORD_FORMAT:
+        return None
+    return doc
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if dataclasses.is_dataclass(o):
+        return dataclasses.asdict(o)
+    return str(o)
+
+
+def effects_to_json(effects: Iterable) -> list:
+    return [e.to_dict() if hasattr(e, "to_dict") else e for e in effects]

@@ -1,0 +1,917 @@
+"""Baking into Blender data: reading the object and scene, writing the motion, clearing a bake.
+
+Everything Blender-free (the body, the material, the solver run, PC2 files, jobs) is in
+:mod:`unipixie.core.bake`; this module turns Blender data into its inputs and its outputs into
+Blender data:
+
+* :func:`read_object` — the mesh as a :class:`~unipixie.core.bake.BakeObject` (refuses non-mesh,
+  empty, linked or edit-mode objects before anything changes).
+* :func:`scenario_from_scene` — gravity from the scene's gravity settings, the ground plane from a
+  picked object, a clamp box from a picked object's bounds or a vertex group's bounds, the initial
+  velocity from the object's properties.
+* Writers — shape keys (one per frame, keyed 0/1/0), a Mesh Cache modifier on a PC2 file, an
+  armature (LBS handles → bones) and a particle object (MPM) — all with bulk ``foreach_set`` calls
+  and Blender 5.0 layered actions (``action.layers[0].strips[0].channelbag(slot).fcurves``).
+* :func:`clear_bake` — removes exactly what a bake added (its record is a JSON ID property
+  ``unipixie_bake`` on the object).
+* :func:`bake_steps` — the whole bake as a generator of ``(fraction, status)`` for the modal
+  operator (the simulation runs in a worker thread; closing the generator cancels it and removes
+  anything half-written); :func:`bake_object` runs it to the end (Python API);
+  :func:`run_jobs` opens scenes, bakes and saves (command line and farms).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional, Sequence
+
+import bpy
+import numpy as np
+
+from .. import bake as core_bake
+from ..bake import (BAKE_RECORD_KEY, BakeJob, BakeObject, BakeOptions, FieldFileSource, HomogeneousSource, ModelSource,
+                    SimulationResult)
+from ..errors import UserError
+from ..progress import Progress, silent
+
+PREFIX = "UniPixie"
+"""Names of everything a bake adds start with this (shape keys, modifiers, objects, actions)."""
+_INTERP_CODE = {"CONSTANT": 0, "LINEAR": 1}
+
+
+# =========================================================================== reading
+def unit_scale(scene) -> float:
+    """Metres per Blender unit (Scene Properties > Units > Unit Scale; 1 when the unit system is None)."""
+    us = scene.unit_settings
+    return float(us.scale_length) if us.system != "NONE" and us.scale_length > 0 else 1.0
+
+
+def _check_bakeable(obj) -> None:
+    if obj is None:
+        raise UserError("no object selected: select the mesh object to bake")
+    if obj.type != "MESH":
+        raise UserError(f"'{obj.name}' is a {obj.type.lower().replace('_', ' ')} object; UniPixie bakes mesh objects "
+                        "(convert it with Object > Convert > Mesh)")
+    if obj.library is not None or obj.data.library is not None or obj.override_library is not None:
+        raise UserError(f"'{obj.name}' is linked from another file and cannot be changed; make it local first")
+    if obj.mode == "EDIT" or obj.data.is_editmode:
+        raise UserError(f"'{obj.name}' is in Edit Mode; switch to Object Mode before baking")
+
+
+def read_object(obj, scene=None) -> BakeObject:
+    """The object's base mesh (before modifiers) as arrays: local rest positions, triangles, transform."""
+    _check_bakeable(obj)
+    scene = scene or bpy.context.scene
+    me = obj.data
+    n = len(me.vertices)
+    if n == 0:
+        raise UserError(f"object '{obj.name}': the mesh is empty (no vertices)")
+    co = np.empty(n * 3, dtype=np.float32)
+    me.vertices.foreach_get("co", co)
+    me.calc_loop_triangles()
+    tris = np.empty(len(me.loop_triangles) * 3, dtype=np.int32)
+    me.loop_triangles.foreach_get("vertices", tris)
+    if tris.size == 0:
+        raise UserError(f"object '{obj.name}': the mesh has no faces (only loose vertices or edges); "
+                        "a solid needs a closed surface")
+    return BakeObject(name=obj.name, rest_local=co.reshape(n, 3), triangles=tris.reshape(-1, 3),
+                      matrix_world=np.array(obj.matrix_world, dtype=np.float64), unit_scale=unit_scale(scene))
+
+
+def world_vertices(obj, scene=None, depsgraph=None) -> np.ndarray:
+    """(N, 3) float64 world positions in metres of an object's evaluated mesh (modifiers applied)."""
+    scene = scene or bpy.context.scene
+    depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(depsgraph)
+    me = ev.to_mesh()
+    try:
+        n = len(me.vertices)
+        co = np.empty(n * 3, dtype=np.float32)
+        me.vertices.foreach_get("co", co)
+    finally:
+        ev.to_mesh_clear()
+    m = np.array(ev.matrix_world, dtype=np.float64)
+    return (co.reshape(n, 3).astype(np.float64) @ m[:3, :3].T + m[:3, 3]) * unit_scale(scene)
+
+
+def evaluated_positions(obj, frame: int, scene=None) -> np.ndarray:
+    """(N, 3) float64 world positions (metres) of the object's evaluated vertices at ``frame``.
+
+    This is what a render or a viewport sees: shape keys, Mesh Cache and Armature modifiers applied.
+    The scene's current frame is restored afterwards.
+    """
+    scene = scene or bpy.context.scene
+    old = scene.frame_current
+    try:
+        scene.frame_set(int(frame))
+        return world_vertices(obj, scene)
+    finally:
+        scene.frame_set(old)
+
+
+def object_settings(obj):
+    """The object's UniPixie settings (``obj.unipixie``), or ``None`` when the add-on's properties are absent."""
+    return getattr(obj, "unipixie", None)
+
+
+@contextlib.contextmanager
+def registered_properties():
+    """Make ``Object.unipixie`` available (registering the add-on's properties for the duration if needed).
+
+    The command line runs bpy without the add-on; its properties are still stored in the .blend and
+    become readable once the property group is registered.
+    """
+    if hasattr(bpy.types.Object, "unipixie"):
+        yield
+        return
+    from ...unipixie_addon import properties
+
+    properties.register()
+    try:
+        yield
+    finally:
+        properties.unregister()
+
+
+def _mesh_object(scene, obj, role: str):
+    if obj is None:
+        return None
+    if obj.type not in {"MESH", "CURVE", "SURFACE", "META", "FONT"}:
+        raise UserError(f"the {role} object '{obj.name}' has no geometry (it is a {obj.type.lower()}); pick a mesh")
+    return obj
+
+
+def ground_height(ground_obj, scene=None) -> float:
+    """Height (metres) of the horizontal plane z = h given by a ground object: the top of its geometry.
+
+    The solvers' ground is the infinite horizontal plane; a tilted ground object is refused.
+    """
+    pts = world_vertices(ground_obj, scene)
+    if len(pts) == 0:
+        raise UserError(f"the ground object '{ground_obj.name}' has no vertices")
+    top = float(pts[:, 2].max())
+    extent = float(np.max(pts.max(0) - pts.min(0))) or 1.0
+    on_top = pts[pts[:, 2] >= top - 1e-5 * extent]
+    span = on_top[:, :2].max(0) - on_top[:, :2].min(0)
+    if np.any(span <= 1e-6 * extent):
+        raise UserError(f"the ground object '{ground_obj.name}' has no horizontal top face (it is tilted or a single "
+                        "edge); UniPixie's ground is the horizontal plane z = height — rotate it flat")
+    return top
+
+
+def clamp_box(obj, scene=None, clamp_object=None, clamp_group: str = "") -> Optional[np.ndarray]:
+    """The clamp (``scenario.pinned_box``, (2, 3) metres) from a clamp object's world bounds or the world
+    bounds of the vertices of a vertex group of ``obj`` (weight ≥ 0.5).  ``None`` when neither is set."""
+    if clamp_object is not None and clamp_group:
+        raise UserError("set either a clamp object or a clamp vertex group, not both")
+    if clamp_object is not None:
+        if clamp_object == obj:
+            raise UserError("the clamp object cannot be the baked object itself")
+        pts = world_vertices(clamp_object, scene)
+        if len(pts) == 0:
+            raise UserError(f"the clamp object '{clamp_object.name}' has no vertices")
+        box = np.stack([pts.min(0), pts.max(0)])
+    elif clamp_group:
+        vg = obj.vertex_groups.get(clamp_group)
+        if vg is None:
+            raise UserError(f"object '{obj.name}' has no vertex group '{clamp_group}' (for the clamp)")
+        bo = read_object(obj, scene)
+        member = np.zeros(bo.vertex_count, dtype=bool)
+        idx = vg.index
+        for v in obj.data.vertices:  # vertex-group membership has no bulk accessor in Blender's API
+            for g in v.groups:
+                if g.group == idx and g.weight >= 0.5:
+                    member[v.index] = True
+        if not member.any():
+            raise UserError(f"the clamp vertex group '{clamp_group}' has no vertices with weight ≥ 0.5")
+        pts = bo.rest_world[member]
+        box = np.stack([pts.min(0), pts.max(0)])
+    else:
+        return None
+    pad = 1e-6 * max(float(np.max(box[1] - box[0])), 1e-3)
+    return box + np.array([[-pad], [pad]])
+
+
+def scenario_from_scene(obj, scene=None, *, ground_object=None, use_ground: Optional[bool] = None,
+                        clamp_object=None, clamp_group: str = "", initial_velocity=None,
+                        initial_angular_velocity=None):
+    """The :class:`~unipixie.solvers.scenario.Scenario` of a bake from the scene and the object's settings.
+
+    gravity: ``scene.gravity`` (× unit scale, m/s²) when the scene uses gravity, else zero.
+    ground: the top of ``ground_object`` (default: the object's ``bake_ground`` setting); none when
+    no ground object is set.  Clamp: see :func:`clamp_box`.  Initial velocity (m/s) and angular
+    velocity (rad/s): the object's settings unless given.
+    Explicit keyword arguments override the object's settings.
+    """
+    from ...solvers.scenario import Scenario
+
+    scene = scene or bpy.context.scene
+    s = object_settings(obj)
+    us = unit_scale(scene)
+    gravity = np.array(scene.gravity, dtype=np.float64) * us if scene.use_gravity else np.zeros(3)
+    if ground_object is None and s is not None and use_ground is not False:
+        ground_object = s.bake_ground
+    if clamp_object is None and not clamp_group and s is not None:
+        clamp_object = s.bake_clamp_object
+        clamp_group = s.bake_clamp_group
+    if initial_velocity is None:
+        initial_velocity = tuple(s.bake_initial_velocity) if s is not None else (0.0, 0.0, 0.0)
+    if initial_angular_velocity is None:
+        initial_angular_velocity = tuple(s.bake_initial_angular_velocity) if s is not None else (0.0, 0.0, 0.0)
+    height = None
+    if use_ground is not False and ground_object is not None:
+        if ground_object == obj:
+            raise UserError("the ground object cannot be the baked object itself")
+        height = ground_height(_mesh_object(scene, ground_object, "ground"), scene)
+    box = clamp_box(obj, scene, _mesh_object(scene, clamp_object, "clamp"), clamp_group)
+    return Scenario(gravity=gravity, ground_height=height, initial_velocity=initial_velocity,
+                    initial_angular_velocity=initial_angular_velocity, pinned_box=box,
+                    notes=f"baked from Blender scene '{scene.name}'")
+
+
+def material_source_from_settings(obj):
+    """The material source chosen in the object's panel settings (homogeneous defaults without the add-on)."""
+    s = object_settings(obj)
+    if s is None:
+        return HomogeneousSource()
+    kind = s.bake_material_source
+    if kind == "field":
+        return FieldFileSource(bpy.path.abspath(s.bake_material_file) if s.bake_material_file else "")
+    if kind == "model":
+        return ModelSource()
+    return HomogeneousSource(E=s.bake_E, nu=s.bake_nu, density=s.bake_density, material=s.bake_material_class)
+
+
+def scene_fps(scene) -> float:
+    return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
+
+
+def options_from_settings(obj, scene=None, **overrides) -> BakeOptions:
+    """:class:`BakeOptions` from the object's panel settings and the scene (frame range, fps, cache folder)."""
+    scene = scene or bpy.context.scene
+    s = object_settings(obj)
+    kw = dict(frames=(scene.frame_start, scene.frame_end), fps=scene_fps(scene),
+              material=material_source_from_settings(obj))
+    if s is not None:
+        kw.update(solver=s.solver, alpha=float(s.alpha), device=s.device, output=s.bake_output,
+                  interpolation=s.bake_interpolation, particles=bool(s.bake_particles) and s.solver == "mpm",
+                  effects=[e for e in (x.strip() for x in s.bake_effects.split(";")) if e])
+        if s.use_bake_frame_range:
+            kw["frames"] = (s.bake_frame_start, s.bake_frame_end)
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return BakeOptions(**kw)
+
+
+# =========================================================================== writing helpers
+def _layered_action(name: str, id_type: str, slot_name: str):
+    """A new Blender 5.0 layered action with one slot, one layer and one keyframe strip; returns (action, slot, channelbag)."""
+    action = bpy.data.actions.new(name)
+    slot = action.slots.new(id_type=id_type, name=slot_name)
+    strip = action.layers.new("UniPixie").strips.new(type="KEYFRAME")
+    return action, slot, strip.channelbag(slot, ensure=True)
+
+
+def _set_keys(fcurve, frames: np.ndarray, values: np.ndarray, interpolation: str) -> None:
+    """Keyframes in bulk: ``keyframe_points.add`` + ``foreach_set`` (no per-keyframe Python)."""
+    n = len(frames)
+    kp = fcurve.keyframe_points
+    kp.add(n)
+    co = np.empty(2 * n, dtype=np.float32)
+    co[0::2] = frames
+    co[1::2] = values
+    kp.foreach_set("co", co)
+    kp.foreach_set("interpolation", np.full(n, _INTERP_CODE[interpolation], dtype=np.int32))
+    fcurve.update()
+
+
+def _assign_action(id_block, action, slot) -> None:
+    ad = id_block.animation_data or id_block.animation_data_create()
+    ad.action = action
+    ad.action_slot = slot
+
+
+def _unique(existing, base: str) -> str:
+    if base not in existing:
+        return base
+    k = 1
+    while f"{base}.{k:03d}" in existing:
+        k += 1
+    return f"{base}.{k:03d}"
+
+
+def _move_first(obj, mod) -> None:
+    idx = list(obj.modifiers).index(mod)
+    if idx:
+        obj.modifiers.move(idx, 0)
+
+
+def _collection_of(obj):
+    cols = list(obj.users_collection)
+    return cols[0] if cols else bpy.context.scene.collection
+
+
+@dataclass
+class WriteRecord:
+    """What a bake created (kept as it is written so a failure or Esc can remove it)."""
+
+    obj_name: str
+    shape_keys: list = field(default_factory=list)
+    created_key: bool = False
+    modifiers: list = field(default_factory=list)
+    vertex_groups: list = field(default_factory=list)
+    actions: list = field(default_factory=list)
+    objects: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    armatures: list = field(default_factory=list)
+    files: list = field(default_factory=list)
+    folders: list = field(default_factory=list)
+    animation_data_created: bool = False
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def cache_folder(obj_name: str, options: BakeOptions, record: WriteRecord) -> tuple[Path, list[str]]:
+    """Folder for PC2 files: ``options.cache_dir``, else ``<blend>_unipixie/`` next to the saved .blend,
+    else the UniPixie cache (with a warning to save and re-bake)."""
+    notes = []
+    if options.cache_dir:
+        folder = Path(options.cache_dir)
+    elif bpy.data.filepath:
+        blend = Path(bpy.data.filepath)
+        folder = blend.parent / f"{blend.stem}_unipixie"
+    else:
+        from ..paths import cache_dir
+
+        folder = cache_dir("bakes")
+        notes.append(f"the .blend is not saved: the PC2 cache for '{obj_name}' is in {folder}; save the .blend and "
+                     "re-bake to keep the cache next to it")
+    if not folder.exists():
+        folder.mkdir(parents=True)
+        record.folders.append(str(folder))
+    return folder, notes
+
+
+def _pc2_path(folder: Path, name: str, suffix: str = "") -> Path:
+    stem = core_bake._safe_name(name) + suffix
+    path = folder / f"{stem}.pc2"
+    k = 1
+    while path.exists():
+        path = folder / f"{stem}.{k:03d}.pc2"
+        k += 1
+    return path
+
+
+# --------------------------------------------------------------------------- shape keys
+def write_shape_keys(obj, local: np.ndarray, frames: np.ndarray, interpolation: str, record: WriteRecord,
+                     chunk: int = 32) -> Iterator[float]:
+    """One shape key per frame (keyed 0 → 1 → 0 around its frame), yielding the fraction written.
+
+    local: (T, N, 3) float32 object-local positions; frames: (T,) scene frames.  At every integer
+    frame exactly one key has value 1, so the evaluated mesh is that frame's positions; the last key
+    stays at 1 after the end (the final state is held) and before the start the first key (= rest).
+    """
+    T, N, _ = local.shape
+    if obj.data.shape_keys is not None:
+        raise UserError(f"object '{obj.name}' already has shape keys; use the Mesh Cache output")
+    basis = obj.shape_key_add(name=f"{PREFIX} Basis", from_mix=False)
+    record.created_key = True
+    record.shape_keys.append(basis.name)
+    key = obj.data.shape_keys
+    key.use_relative = True
+    names = []
+    for t0 in range(0, T, chunk):
+        for t in range(t0, min(T, t0 + chunk)):
+            kb = obj.shape_key_add(name=f"{PREFIX} {int(frames[t]):04d}", from_mix=False)
+            kb.data.foreach_set("co", local[t].ravel())
+            kb.value = 0.0
+            kb.slider_min = 0.0
+            names.append(kb.name)
+            record.shape_keys.append(kb.name)
+        yield 0.9 * min(T, t0 + chunk) / T
+    action, slot, bag = _layered_action(f"{PREFIX} {obj.name} shape keys", "KEY", key.name)
+    record.actions.append(action.name)
+    f = frames.astype(np.float64)
+    for t, name in enumerate(names):
+        fc = bag.fcurves.new(f'key_blocks["{bpy.utils.escape_identifier(name)}"].value')
+        lo, hi = max(t - 1, 0), min(t + 1, T - 1)
+        kf = f[lo:hi + 1]
+        vals = (np.arange(lo, hi + 1) == t).astype(np.float32)
+        if t == T - 1:  # hold the final state after the end
+            pass
+        _set_keys(fc, kf, vals, interpolation)
+    _assign_action(key, action, slot)
+    yield 1.0
+
+
+# --------------------------------------------------------------------------- Mesh Cache (PC2)
+def write_mesh_cache(obj, local: np.ndarray, frames: np.ndarray, interpolation: str, folder: Path,
+                     record: WriteRecord, suffix: str = "") -> Iterator[float]:
+    """A PC2 file (written atomically) and a Mesh Cache modifier first in the stack reading it."""
+    path = _pc2_path(folder, obj.name, suffix)
+    core_bake.write_pc2(path, local, start_frame=float(frames[0]), sample_rate=1.0)
+    record.files.append(str(path))
+    yield 0.8
+    mod = obj.modifiers.new(name=_unique({m.name for m in obj.modifiers}, f"{PREFIX} Mesh Cache"), type="MESH_CACHE")
+    record.modifiers.append(mod.name)
+    mod.cache_format = "PC2"
+    mod.filepath = str(path)
+    mod.frame_start = float(frames[0])
+    mod.frame_scale = 1.0
+    mod.play_mode = "SCENE"
+    mod.time_mode = "FRAME"
+    mod.deform_mode = "OVERWRITE"
+    mod.interpolation = "LINEAR" if interpolation == "LINEAR" else "NONE"
+    mod.forward_axis = "POS_Y"
+    mod.up_axis = "POS_Z"
+    _move_first(obj, mod)
+    yield 1.0
+
+
+# --------------------------------------------------------------------------- armature (LBS)
+@contextlib.contextmanager
+def _edit_mode(arm_obj):
+    view_layer = bpy.context.view_layer
+    prev_active = view_layer.objects.active
+    prev_mode = prev_active.mode if prev_active is not None else "OBJECT"
+    if prev_active is not None and prev_mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    view_layer.objects.active = arm_obj
+    with bpy.context.temp_override(active_object=arm_obj, object=arm_obj, edit_object=arm_obj):
+        bpy.ops.object.mode_set(mode="EDIT")
+        try:
+            yield
+        finally:
+            bpy.ops.object.mode_set(mode="OBJECT")
+    view_layer.objects.active = prev_active
+
+
+def write_armature(obj, bo: BakeObject, plan: core_bake.ArmaturePlan, local_maps: np.ndarray, frames: np.ndarray,
+                   interpolation: str, record: WriteRecord) -> Iterator[float]:
+    """An armature object (child of ``obj``, so it follows the object) with one bone per handle, a vertex
+    group per bone holding the skinning weights, an Armature modifier first in ``obj``'s stack, and
+    the bones keyed every frame (location, quaternion rotation, scale; linear blending).
+
+    The pose channels are recomputed from the bones' actual rest matrices as Blender stored them, so
+    the rounding of head/tail/roll does not add error.
+    """
+    name = _unique(bpy.data.objects.keys(), f"{PREFIX} {obj.name} rig")
+    arm = bpy.data.armatures.new(name)
+    record.armatures.append(arm.name)
+    arm_obj = bpy.data.objects.new(name, arm)
+    record.objects.append(arm_obj.name)
+    _collection_of(obj).objects.link(arm_obj)
+    arm_obj.parent = obj
+    arm_obj.matrix_parent_inverse.identity()
+    arm_obj.matrix_basis.identity()
+    arm.display_type = "STICK"
+    arm_obj.show_in_front = True
+    B = plan.bone_count
+    existing_groups = {g.name for g in obj.vertex_groups}
+    bone_names = [_unique(existing_groups, f"{PREFIX} handle {h:02d}") for h in range(B)]
+    from mathutils import Matrix
+
+    with _edit_mode(arm_obj):
+        for h in range(B):
+            eb = arm.edit_bones.new(bone_names[h])
+            eb.head = (0.0, 0.0, 0.0)
+            eb.tail = (0.0, plan.bone_length, 0.0)
+            eb.matrix = Matrix(plan.rest[h].tolist())
+            eb.use_deform = True
+    bone_names = [b.name for b in arm.bones]
+    yield 0.2
+    rest = np.array([np.array(arm.bones[n].matrix_local, dtype=np.float64) for n in bone_names])
+    location, quat, scale = _pose_channels(local_maps, rest)
+    # vertex groups with the skinning weights
+    for h, bname in enumerate(bone_names):
+        vg = obj.vertex_groups.new(name=bname)
+        record.vertex_groups.append(vg.name)
+        w = plan.weights[:, h]
+        nz = np.nonzero(w > 0)[0]
+        ones = nz[w[nz] >= 1.0]
+        if len(ones):
+            vg.add(ones.tolist(), 1.0, "REPLACE")
+        add = vg.add
+        for i, wi in zip(nz[w[nz] < 1.0].tolist(), w[nz][w[nz] < 1.0].tolist()):
+            add((i,), wi, "REPLACE")  # Blender has no bulk setter for vertex-group weights
+    yield 0.5
+    mod = obj.modifiers.new(name=_unique({m.name for m in obj.modifiers}, f"{PREFIX} Armature"), type="ARMATURE")
+    record.modifiers.append(mod.name)
+    mod.object = arm_obj
+    mod.use_vertex_groups = True
+    mod.use_bone_envelopes = False
+    mod.use_deform_preserve_volume = False
+    mod.use_multi_modifier = False
+    _move_first(obj, mod)
+    action, slot, bag = _layered_action(f"{PREFIX} {obj.name} rig", "OBJECT", arm_obj.name)
+    record.actions.append(action.name)
+    f = frames.astype(np.float64)
+    for h, bname in enumerate(bone_names):
+        pb = arm_obj.pose.bones[bname]
+        pb.rotation_mode = "QUATERNION"
+        base = f'pose.bones["{bpy.utils.escape_identifier(bname)}"]'
+        for prop, values in (("location", location[:, h]), ("rotation_quaternion", quat[:, h]), ("scale", scale[:, h])):
+            for i in range(values.shape[1]):
+                fc = bag.fcurves.new(f"{base}.{prop}", index=i, group_name=bname)
+                _set_keys(fc, f, values[:, i], interpolation)
+    _assign_action(arm_obj, action, slot)
+    yield 1.0
+
+
+def _pose_channels(local_maps: np.ndarray, rest: np.ndarray):
+    """(T, B, 4, 4) local handle maps and (B, 4, 4) bone rest matrices → location, quaternion, scale channels."""
+    rest_inv = np.linalg.inv(rest)
+    G = rest_inv[None] @ local_maps @ rest[None]
+    Q, P = core_bake.polar_decompose(G[..., :3, :3])
+    scale = np.diagonal(P, axis1=-2, axis2=-1).copy()
+    quat = core_bake._quat_from_matrix(Q)
+    for t in range(1, quat.shape[0]):
+        flip = np.sum(quat[t] * quat[t - 1], axis=-1) < 0
+        quat[t, flip] *= -1.0
+    return G[..., :3, 3].copy(), quat, scale
+
+
+# --------------------------------------------------------------------------- particles (MPM)
+def write_particles(obj, bo: BakeObject, traj, frames: np.ndarray, options: BakeOptions, record: WriteRecord,
+                    notes: list) -> Iterator[float]:
+    """A vertex-only mesh object of the MPM particles, moving with them, with point attributes
+    ``E`` (Pa), ``nu``, ``density`` (kg/m³), ``material_class`` (registry id) and ``velocity`` (m/s, at the
+    first frame) for viewing the material field.  Positions are stored as the main motion is
+    (shape keys, or a Mesh Cache for large particle counts)."""
+    if traj.particle_positions is None:
+        notes.append("the solver returned no particle states; no particle object was made")
+        yield 1.0
+        return
+    P = traj.particle_positions.shape[1]
+    us = bo.unit_scale
+    world_bu = np.asarray(traj.particle_positions, dtype=np.float64) / us  # world, Blender units
+    name = _unique(bpy.data.objects.keys(), f"{PREFIX} {obj.name} particles")
+    me = bpy.data.meshes.new(name)
+    record.meshes.append(me.name)
+    me.vertices.add(P)
+    me.vertices.foreach_set("co", world_bu[0].astype(np.float32).ravel())
+    attrs = traj.particle_attributes or {}
+    for key, aname, atype in (("E", "E", "FLOAT"), ("nu", "nu", "FLOAT"), ("density", "density", "FLOAT"),
+                              ("material", "material_class", "INT")):
+        if key in attrs and np.asarray(attrs[key]).shape[:1] == (P,):
+            vals = np.asarray(attrs[key]).reshape(P, -1)[:, 0]
+            a = me.attributes.new(aname, atype, "POINT")
+            a.data.foreach_set("value", vals.astype(np.int32 if atype == "INT" else np.float32))
+    vel = attrs.get("velocity")
+    if vel is not None:
+        vel = np.asarray(vel, dtype=np.float32)
+        v0 = vel[0] if vel.ndim == 3 else vel
+        if v0.shape == (P, 3):
+            a = me.attributes.new("velocity", "FLOAT_VECTOR", "POINT")
+            a.data.foreach_set("vector", (v0 / us).astype(np.float32).ravel())
+    me.update()
+    pobj = bpy.data.objects.new(name, me)
+    record.objects.append(pobj.name)
+    _collection_of(obj).objects.link(pobj)
+    pobj.display_type = "WIRE"
+    yield 0.2
+    local = world_bu.astype(np.float32)
+    mode = core_bake.vertex_output(P, len(frames), False, False, [])
+    if mode == "shape_keys":
+        for f in write_shape_keys(pobj, local, frames, options.interpolation, record):
+            yield 0.2 + 0.8 * f
+    else:
+        folder, more = cache_folder(obj.name, options, record)
+        notes.extend(more)
+        for f in write_mesh_cache(pobj, local, frames, options.interpolation, folder, record, suffix="_particles"):
+            yield 0.2 + 0.8 * f
+
+
+# =========================================================================== removal
+def _remove_recorded(obj, rec: dict) -> None:
+    """Remove everything listed in a bake record (tolerates parts already gone)."""
+    data = bpy.data
+    # actions first (they reference the ids)
+    for name in rec.get("actions", []):
+        act = data.actions.get(name)
+        if act is not None:
+            data.actions.remove(act)
+    if obj is not None:
+        if rec.get("created_key") and obj.data.shape_keys is not None:
+            obj.shape_key_clear()
+        for name in rec.get("modifiers", []):
+            m = obj.modifiers.get(name)
+            if m is not None:
+                obj.modifiers.remove(m)
+        for name in rec.get("vertex_groups", []):
+            g = obj.vertex_groups.get(name)
+            if g is not None:
+                obj.vertex_groups.remove(g)
+    for name in rec.get("objects", []):
+        o = data.objects.get(name)
+        if o is not None:
+            if o.type == "MESH" and o.data is not None and o.data.shape_keys is not None:
+                o.shape_key_clear()
+            data.objects.remove(o)
+    for name in rec.get("meshes", []):
+        m = data.meshes.get(name)
+        if m is not None and m.users == 0:
+            data.meshes.remove(m)
+    for name in rec.get("armatures", []):
+        a = data.armatures.get(name)
+        if a is not None and a.users == 0:
+            data.armatures.remove(a)
+    for path in rec.get("files", []):
+        p = Path(path)
+        if p.suffix == ".pc2" and p.is_file():
+            p.unlink()
+    for folder in rec.get("folders", []):
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)  # only when empty
+
+
+def bake_record(obj) -> Optional[dict]:
+    """The record of the bake on ``obj`` (what it added), or ``None`` if it has none."""
+    if obj is None:
+        return None
+    return core_bake.parse_record(obj.get(BAKE_RECORD_KEY))
+
+
+def clear_bake(obj) -> dict:
+    """Remove everything the bake on ``obj`` added: shape keys, their action, modifiers, vertex groups,
+    the armature or particle objects with their data and actions, and the PC2 files it wrote.
+
+    The original mesh data is untouched.  Returns the record that was cleared; an object without a
+    bake is a :class:`UserError`.
+    """
+    if obj is None:
+        raise UserError("no object selected")
+    rec = bake_record(obj)
+    if rec is None:
+        raise UserError(f"object '{obj.name}' has no UniPixie bake to clear")
+    if obj.library is not None:
+        raise UserError(f"'{obj.name}' is linked from another file and cannot be changed")
+    # the Mesh Cache path may have been made relative since the bake: resolve it from the modifier
+    files = set(rec.get("files", []))
+    for name in rec.get("modifiers", []):
+        m = obj.modifiers.get(name)
+        if m is not None and m.type == "MESH_CACHE" and m.filepath:
+            files.add(os.path.normpath(bpy.path.abspath(m.filepath)))
+    for oname in rec.get("objects", []):
+        o = bpy.data.objects.get(oname)
+        if o is not None:
+            for m in o.modifiers:
+                if m.type == "MESH_CACHE" and m.filepath:
+                    files.add(os.path.normpath(bpy.path.abspath(m.filepath)))
+    rec = {**rec, "files": sorted(files)}
+    _remove_recorded(obj, rec)
+    if BAKE_RECORD_KEY in obj:
+        del obj[BAKE_RECORD_KEY]
+    s = object_settings(obj)
+    if s is not None:
+        s.status = ""
+    return rec
+
+
+# =========================================================================== the whole bake
+@dataclass
+class BakeReport:
+    """What a bake did: ``mode`` (shape_keys / mesh_cache / armature), frames, timings and notes."""
+
+    object: str
+    solver: str
+    mode: str
+    frames: tuple
+    simulate_seconds: float
+    write_seconds: float
+    material: str
+    notes: list = field(default_factory=list)
+    files: list = field(default_factory=list)
+    armature_error: Optional[float] = None
+
+    def summary(self) -> str:
+        return (f"baked '{self.object}' with {self.solver} ({self.material}) as {self.mode.replace('_', ' ')}, "
+                f"frames {self.frames[0]}-{self.frames[1]}: simulation {self.simulate_seconds:.1f} s, "
+                f"writing {self.write_seconds:.2f} s")
+
+
+def write_result(obj, bo: BakeObject, result: SimulationResult, options: BakeOptions,
+                 report: Optional[dict] = None) -> Iterator[tuple[float, str]]:
+    """Write a finished simulation to Blender data; yields ``(fraction, status)``, returns a :class:`BakeReport`.
+
+    Any previous UniPixie bake on the object is cleared first.  If writing fails or the generator is
+    closed (Esc), everything written so far is removed again: there is never a half-written bake.
+    """
+    t0 = time.perf_counter()
+    traj = result.trajectory
+    frames = options.frames.frames
+    notes = list(result.warnings)
+    me = obj.data
+    own_keys = me.shape_keys is not None and bake_record(obj) is None
+    mode, more = core_bake.choose_output(options.solver, options.output, bo.vertex_count, len(frames),
+                                         has_other_shape_keys=own_keys, mesh_shared=me.users > 1)
+    notes.extend(more)
+    if bake_record(obj) is not None:
+        clear_bake(obj)
+    plan = None
+    local_maps = None
+    if mode == "armature":
+        if traj.handle_transforms is None or result.skinning_weights is None:
+            reason = "the LBS run returned no handle transforms / vertex weights"
+        else:
+            plan, reason = core_bake.plan_armature(bo, result.skinning_weights, traj.handle_transforms, traj.positions,
+                                                   options.armature_tolerance)
+        if plan is None:
+            fallback = core_bake.vertex_output(bo.vertex_count, len(frames), me.shape_keys is not None, me.users > 1, [])
+            notes.append(f"LBS handles baked per vertex ({fallback.replace('_', ' ')}) instead of an armature: {reason}")
+            mode = fallback
+        else:
+            S = bo.world_from_local
+            A4 = np.zeros(traj.handle_transforms.shape[:2] + (4, 4))
+            A4[..., :3, :] = traj.handle_transforms
+            A4[..., 3, 3] = 1.0
+            local_maps = np.linalg.inv(S) @ A4 @ S
+    record = WriteRecord(obj.name)
+    done = False
+    try:
+        if mode == "armature":
+            for f in write_armature(obj, bo, plan, local_maps, frames, options.interpolation, record):
+                yield 0.9 * f, "writing the armature"
+        else:
+            local = core_bake.trajectory_to_local(bo, traj.positions)
+            if mode == "shape_keys":
+                for f in write_shape_keys(obj, local, frames, options.interpolation, record):
+                    yield 0.9 * f, "writing shape keys"
+            else:
+                folder, more = cache_folder(obj.name, options, record)
+                notes.extend(more)
+                for f in write_mesh_cache(obj, local, frames, options.interpolation, folder, record):
+                    yield 0.9 * f, "writing the PC2 cache"
+        if options.particles:
+            for f in write_particles(obj, bo, traj, frames, options, record, notes):
+                yield 0.9 + 0.1 * f, "writing the particle object"
+        rep = BakeReport(object=obj.name, solver=options.solver, mode=mode, frames=(int(frames[0]), int(frames[-1])),
+                         simulate_seconds=result.seconds, write_seconds=time.perf_counter() - t0,
+                         material=result.material_description, notes=notes, files=list(record.files),
+                         armature_error=None if plan is None else plan.max_error)
+        obj[BAKE_RECORD_KEY] = core_bake.make_record(
+            **record.to_dict(), mode=mode, solver=options.solver, frames=[int(frames[0]), int(frames[-1])],
+            fps=options.fps, alpha=options.alpha, material=result.material_description,
+            material_source=options.material.to_dict(), effects=core_bake.effects_to_json(options.effects),
+            device=options.device, notes=notes, armature_error=rep.armature_error,
+            simulate_seconds=result.seconds, write_seconds=rep.write_seconds, **(report or {}))
+        done = True
+        return rep
+    finally:
+        if not done:
+            _remove_recorded(obj, record.to_dict())
+
+
+def bake_steps(obj, options: Optional[BakeOptions] = None, scenario=None, scene=None,
+               wait: float = 0.05) -> Iterator[tuple[float, str]]:
+    """The whole bake of ``obj`` as a generator of ``(fraction, status)``; its return value is a :class:`BakeReport`.
+
+    Reads and checks everything first (bad input changes nothing), runs the simulation in a worker
+    thread (the caller yields to Blender between polls), then writes.  Closing the generator (Esc)
+    cancels the simulation and removes anything written.
+    """
+    scene = scene or bpy.context.scene
+    bo = read_object(obj, scene)
+    options = options or options_from_settings(obj, scene)
+    scenario = scenario if scenario is not None else scenario_from_scene(obj, scene)
+    if options.output == "shape_keys" or options.output == "auto":
+        pass
+    yield 0.0, "starting"
+    run = core_bake.BackgroundRun(lambda progress: core_bake.simulate(bo, scenario, options, progress),
+                                  description=f"{options.solver} bake").start()
+    try:
+        while not run.wait(wait):
+            yield 0.85 * run.fraction, run.status or "simulating"
+    finally:
+        if not run.done:
+            run.cancel(wait=True)
+    result = run.result()
+    yield 0.85, "writing"
+    gen = write_result(obj, bo, result, options)
+    while True:
+        try:
+            frac, status = next(gen)
+        except StopIteration as stop:
+            report = stop.value
+            break
+        yield 0.85 + 0.15 * frac, status
+    s = object_settings(obj)
+    if s is not None:
+        s.status = f"baked: {report.mode.replace('_', ' ')}, frames {report.frames[0]}-{report.frames[1]}"
+    return report
+
+
+def bake_object(obj, options: Optional[BakeOptions] = None, scenario=None, progress: Optional[Progress] = None,
+                scene=None) -> BakeReport:
+    """Bake ``obj`` to the end (Python API for pipeline scripts).
+
+    options: :class:`~unipixie.core.bake.BakeOptions` (default: the object's panel settings and the
+    scene's frame range); scenario: a :class:`~unipixie.solvers.scenario.Scenario` (default: from the
+    scene, see :func:`scenario_from_scene`).  ``progress`` receives the fraction and can cancel.
+    """
+    progress = progress or silent()
+    gen = bake_steps(obj, options, scenario, scene)
+    last = 0.0
+    try:
+        while True:
+            try:
+                frac, status = next(gen)
+            except StopIteration as stop:
+                return stop.value
+            progress.step(max(0.0, frac - last) * progress.total, status)
+            last = max(last, frac)
+    finally:
+        gen.close()
+
+
+# =========================================================================== jobs (command line / farms)
+def options_for_job(job: BakeJob, obj, scene) -> tuple[BakeOptions, object]:
+    """A job's :class:`BakeOptions` and scenario: the job's values over the object's panel settings."""
+    s = object_settings(obj)
+    material = job.material
+    if material is None:
+        if job.alpha is not None:
+            material = ModelSource()
+        else:
+            material = material_source_from_settings(obj)
+    frames = job.frames or ((s.bake_frame_start, s.bake_frame_end) if s is not None and s.use_bake_frame_range
+                            else (scene.frame_start, scene.frame_end))
+    alpha = job.alpha if job.alpha is not None else (float(s.alpha) if s is not None else None)
+    options = BakeOptions(solver=job.solver, frames=frames, fps=scene_fps(scene), material=material, alpha=alpha,
+                          effects=list(job.effects), device=job.device, output=job.output,
+                          interpolation=job.interpolation, particles=job.particles,
+                          armature_tolerance=job.armature_tolerance, solver_settings=job.solver_settings,
+                          cache_dir=str(Path(job.out).resolve().parent / f"{Path(job.out).stem}_unipixie"))
+    sc = job.scenario or {}
+    ground_obj = None
+    use_ground = None
+    if "ground" in sc and isinstance(sc["ground"], str):
+        ground_obj = bpy.data.objects.get(sc["ground"])
+        if ground_obj is None:
+            raise UserError(f"ground object '{sc['ground']}' not found in {job.scene}")
+    clamp_obj = None
+    clamp_group = ""
+    if isinstance(sc.get("clamp"), str):
+        clamp_obj = bpy.data.objects.get(sc["clamp"])
+        if clamp_obj is None:
+            raise UserError(f"clamp object '{sc['clamp']}' not found in {job.scene}")
+    if isinstance(sc.get("clamp_group"), str):
+        clamp_group = sc["clamp_group"]
+    if sc.get("ground", "") is None:
+        use_ground = False
+    scenario = scenario_from_scene(obj, scene, ground_object=ground_obj, use_ground=use_ground,
+                                   clamp_object=clamp_obj, clamp_group=clamp_group)
+    numeric = {k: v for k, v in sc.items() if k in ("gravity", "initial_velocity", "initial_angular_velocity", "pinned_box")}
+    if isinstance(sc.get("ground"), dict):
+        numeric["ground"] = sc["ground"]
+    if numeric:
+        from ...solvers.scenario import Scenario
+
+        d = scenario.to_dict()
+        d.update(numeric)
+        scenario = Scenario.from_dict(d)
+    return options, scenario
+
+
+def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print) -> list[BakeReport]:
+    """Run bake jobs: for each (scene, out) group open the scene, bake its objects, save ``out``.
+
+    Object names may be shell wildcards (resolved in the opened scene).  PC2 caches go to
+    ``<out stem>_unipixie/`` next to ``out`` and are referenced relative to it.
+    """
+    progress = progress or silent()
+    reports: list[BakeReport] = []
+    groups = core_bake.group_jobs(jobs)
+    total = max(len(jobs), 1)
+    for group in groups:
+        scene_path = Path(group[0].scene)
+        out = Path(group[0].out)
+        if not scene_path.is_file():
+            raise UserError(f"scene file not found: {scene_path}")
+        if scene_path.suffix.lower() != ".blend":
+            raise UserError(f"{scene_path}: the scene must be a .blend file")
+        bpy.ops.wm.open_mainfile(filepath=str(scene_path.resolve()))
+        with registered_properties():
+            scene = bpy.context.scene
+            names = [o.name for o in bpy.data.objects]
+            for job in group:
+                for name in core_bake.select_objects([job.object], names):
+                    obj = bpy.data.objects[name]
+                    j = BakeJob(**{**job.__dict__, "object": name})
+                    options, scenario = options_for_job(j, obj, scene)
+                    log(f"baking {j.describe()}")
+                    sub = progress.sub(1.0 / max(len(group), 1) * len(group) / total, 1.0, name)
+                    rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
+                    for n in rep.notes:
+                        log(f"  note: {n}")
+                    log(f"  {rep.summary()}")
+                    reports.append(rep)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            bpy.ops.wm.save_as_mainfile(filepath=str(out.resolve()), relative_remap=True)
+            log(f"saved {out}")
+    return reports

@@ -1,0 +1,144 @@
+"""Operators "Simulate & bake" / "Clear bake" and the bake sub-panel.
+
+UI only: the work is :func:`unipixie.core.blender_io.bake.bake_steps` (a generator the job runner
+drives: progress bar, status text, Esc cancels and removes anything half-written) and
+:func:`unipixie.core.blender_io.bake.clear_bake`.  Both operators are undoable (Ctrl-Z).
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from ..core.blender_io import bake as bio
+from .jobs import JobOperator
+from .properties import SOLVER_ITEMS
+
+
+class UNIPIXIE_OT_bake(JobOperator, bpy.types.Operator):
+    """Simulate the active mesh with the chosen solver and bake the motion into keyframes"""
+
+    bl_idname = "unipixie.bake"
+    bl_label = "Simulate & bake"
+    bl_options = {"REGISTER", "UNDO"}
+
+    solver: bpy.props.EnumProperty(name="Solver", items=[("OBJECT", "From object", "Use the object's solver setting")]
+                                   + SOLVER_ITEMS, default="OBJECT", options={"SKIP_SAVE"})
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == "MESH" and obj.mode == "OBJECT"
+
+    def make_job(self, context):
+        obj = context.active_object
+        overrides = {} if self.solver == "OBJECT" else {"solver": self.solver}
+        options = bio.options_from_settings(obj, context.scene, **overrides)
+        self._object_name = obj.name
+        report = yield from bio.bake_steps(obj, options, scene=context.scene)
+        return report
+
+    def finish(self, context, result):
+        for note in result.notes:
+            self.report({"WARNING"}, note)
+        self.report({"INFO"}, result.summary())
+        return {"FINISHED"}
+
+    def on_cancel(self, context):
+        obj = bpy.data.objects.get(getattr(self, "_object_name", ""))
+        if obj is not None and hasattr(obj, "unipixie"):
+            obj.unipixie.status = "bake cancelled: nothing was written"
+
+
+class UNIPIXIE_OT_clear_bake(bpy.types.Operator):
+    """Remove everything the UniPixie bake added to the active object (shape keys, modifiers, rig, caches)"""
+
+    bl_idname = "unipixie.clear_bake"
+    bl_label = "Clear bake"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and bio.bake_record(obj) is not None
+
+    def execute(self, context):
+        from ..core.errors import UserError
+
+        obj = context.active_object
+        try:
+            rec = bio.clear_bake(obj)
+        except UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"cleared the {rec.get('mode', '').replace('_', ' ')} bake of '{obj.name}'")
+        return {"FINISHED"}
+
+
+class VIEW3D_PT_unipixie_bake(bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_unipixie_bake"
+    bl_label = "Simulate & bake"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "UniPixie"
+    bl_parent_id = "VIEW3D_PT_unipixie"
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == "MESH"
+
+    def draw(self, context):
+        layout = self.layout
+        obj = context.active_object
+        s = obj.unipixie
+        col = layout.column(align=True)
+        col.prop(s, "bake_material_source")
+        if s.bake_material_source == "homogeneous":
+            col.prop(s, "bake_material_class")
+            col.prop(s, "bake_E")
+            col.prop(s, "bake_nu")
+            col.prop(s, "bake_density")
+        elif s.bake_material_source == "field":
+            col.prop(s, "bake_material_file")
+        else:
+            col.label(text=f"Model prediction at α = {s.alpha:.2f}")
+        box = layout.box()
+        box.label(text="Scenario")
+        box.prop(s, "bake_ground")
+        box.prop(s, "bake_clamp_object")
+        box.prop_search(s, "bake_clamp_group", obj, "vertex_groups")
+        box.prop(s, "bake_initial_velocity")
+        box.prop(s, "bake_initial_angular_velocity")
+        box.prop(s, "bake_effects")
+        col = layout.column(align=True)
+        col.prop(s, "use_bake_frame_range")
+        if s.use_bake_frame_range:
+            row = col.row(align=True)
+            row.prop(s, "bake_frame_start")
+            row.prop(s, "bake_frame_end")
+        else:
+            col.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end} (scene)")
+        layout.prop(s, "bake_output")
+        layout.prop(s, "bake_interpolation")
+        if s.solver == "mpm":
+            layout.prop(s, "bake_particles")
+        row = layout.row(align=True)
+        row.operator("unipixie.bake", icon="PHYSICS")
+        row.operator("unipixie.clear_bake", icon="TRASH")
+        rec = bio.bake_record(obj)
+        if rec is not None:
+            layout.label(text=f"Baked: {rec.get('solver')} → {rec.get('mode', '').replace('_', ' ')}, "
+                              f"frames {rec['frames'][0]}-{rec['frames'][1]}", icon="CHECKMARK")
+
+
+CLASSES = (UNIPIXIE_OT_bake, UNIPIXIE_OT_clear_bake, VIEW3D_PT_unipixie_bake)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
