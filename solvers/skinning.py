@@ -72,6 +72,23 @@ def hidden_features(x_normalised: np.ndarray, hidden: int = HIDDEN) -> np.ndarra
     return np.sin(h1 @ W2.T + b2)
 
 
+def hidden_features_jacobian(x_normalised: np.ndarray, hidden: int = HIDDEN) -> tuple[np.ndarray, np.ndarray]:
+    """Features and their spatial derivatives: (N, hidden) and (N, hidden, 3) d(feature)/d(x_normalised).
+
+    Used by the LBS solver for deformation gradients (∇w = W · d(features)/dx).
+    """
+    if hidden not in _LAYERS:
+        _LAYERS[hidden] = _fixed_layers(hidden)
+    W1, b1, W2, b2 = _LAYERS[hidden]
+    x = np.asarray(x_normalised, dtype=np.float64)
+    a1 = x @ W1.T + b1
+    h1 = np.sin(a1)
+    a2 = h1 @ W2.T + b2
+    dh1 = np.cos(a1)[:, :, None] * W1[None, :, :]          # (N, hidden, 3)
+    jac = np.cos(a2)[:, :, None] * np.einsum("ij,njk->nik", W2, dh1)
+    return np.sin(a2), jac
+
+
 def split_params(params: np.ndarray, handles: int = DEFAULT_HANDLES, hidden: int = HIDDEN):
     """Flat (650,) vector -> (W (H, hidden), b (H,))."""
     p = np.asarray(params, dtype=np.float64).reshape(-1)
