@@ -1,0 +1,1008 @@
+"""The diagnosis loop: compare with a measurement, find the missing physical effect, add it, repeat.
+
+::
+
+    from unipixie.core import measurement
+    from unipixie.core.diagnosis import diagnose
+
+    m = measurement.load("drop.npz")
+    result = diagnose.diagnose(m, solver="spring_mass", out_dir="report")
+    print(result.identified, result.history)
+
+What it does (``shared/specs/measurement-format.md`` §3, ``shared/notes/diagnosis.md``):
+
+1. **Simulate** the measurement's scenario with the model as given (its material, the chosen
+   solver, the effects already on) and **compare** (:mod:`.compare`): RMSE over observed
+   samples, per point / instant / region, worst points and instants.
+2. **Noise**: the measurement noise σ is estimated from the tracks themselves
+   (:func:`.compare.estimate_noise`).
+3. **Base fit**: the base material's Young's modulus is refitted (a grid of starts, then
+   Levenberg–Marquardt).  Under gravity and inertia alone the motion depends on E/ρ only,
+   so this is a fit of E/ρ, reported as a scale of the stated E.  It is applied through the
+   effect mechanism (a stiffness factor over the whole solid), so every solver re-runs it
+   without being prepared again.
+4. **Candidates**: every effect of the registry (:mod:`unipixie.solvers.effects`) is fitted
+   *together with* the base scale and the effects added so far (start grid + bounded LM,
+   batched through ``Simulation.run_batch``).  ``stiffness_region`` searches regions (halves
+   of the solid along each axis and k-means clusters of the rest positions): every region
+   is probed, the few best (after compensating for a global E change) are fitted, and the
+   region found is reported.
+5. **Significance** (:mod:`.significance`): the gain must beat noise plus the extra
+   parameters (a chi-bar-squared threshold for parameters bounded at "no effect",
+   Bonferroni over everything tried), it must remove a real share of the structured error
+   the reference model leaves (a close-but-not-identical base model leaves one), and
+   refitting on the early frames must not predict the held-out later frames worse.  A
+   suspected damping is re-checked at half the solver's time step (numerical dissipation).
+6. **Rank** by the penalised gain; the best significant effect (or the user's pick) is
+   **added** with its fitted parameters, the model re-simulated, and the round repeats until
+   nothing significant remains or ``max_additions`` is reached.  ``history`` records the
+   error after each addition.
+7. Finally the base material is checked on its own: with the effects found, is E/ρ
+   significantly different from the stated one?  (reported separately from effects.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Optional, Sequence
+
+import numpy as np
+
+from ...solvers import effects as fx
+from ..errors import SimulationDiverged, UserError
+from ..progress import Progress, silent
+from . import significance as sig
+from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
+from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, free_params_for, grid_search,
+                  levenberg_marquardt, uncertainty)
+
+REPORT_FORMAT = "unipixie.diagnosis/1"
+DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
+"""Effects re-checked at half the time step (numerical dissipation looks like them)."""
+DEFAULT_MAX_ADDITIONS = 3
+DEFAULT_REGION_CLUSTERS = 8
+BASE_SCALE_BOUNDS = (0.05, 20.0)
+"""Range of the E/ρ scale the base fit may use."""
+
+Log = Callable[[str], None]
+
+
+# --------------------------------------------------------------------------- results
+@dataclass
+class CandidateResult:
+    """One effect fitted against the reference model of a round.
+
+    effect: the fitted effect; effects: all fitted effects of this model (added so far + this);
+    E_scale: the base E/ρ scale fitted with it; sse: m² over observed samples; rmse: m.
+    explained: share of the round's baseline (model as given) squared error removed;
+    explained_beyond_base: share of the reference (refitted base) squared error removed;
+    lr: Λ = ΔSSE/σ² against the reference; threshold: the Λ needed; share: share of the
+    reference's above-noise error removed; holdout: dict or None; significant: the verdict.
+    """
+
+    name: str
+    effect: Optional[fx.Effect]
+    effects: list
+    E_scale: float
+    sse: float
+    rmse: float
+    residual: Optional[np.ndarray] = None
+    explained: float = 0.0
+    explained_beyond_base: float = 0.0
+    lr: float = 0.0
+    threshold: float = math.inf
+    share: float = 0.0
+    holdout: Optional[dict] = None
+    dt_check: Optional[dict] = None
+    significant: bool = False
+    reasons: list = field(default_factory=list)
+    uncertainty: dict = field(default_factory=dict)
+    free_params: list = field(default_factory=list)
+    fit: Optional[FitResult] = None
+    parametrisation: Optional[Parametrisation] = None
+    interior: int = 0
+    bounded: int = 0
+    tests: int = 1
+    region: Optional[dict] = None
+    evaluations: int = 0
+
+    @property
+    def score(self) -> float:
+        """Penalised gain used for ranking: Λ − threshold (larger is better)."""
+        return self.lr - (self.threshold if math.isfinite(self.threshold) else 0.0)
+
+    def params(self) -> dict:
+        return self.effect.params_dict() if self.effect is not None else {}
+
+    def to_dict(self) -> dict:
+        d = {"effect": self.name, "params": self.params(), "rmse": _f(self.rmse), "explained": _f(self.explained),
+             "significant": bool(self.significant),
+             "explained_beyond_base": _f(self.explained_beyond_base), "E_scale": _f(self.E_scale),
+             "likelihood_ratio": _f(self.lr), "threshold": _f(self.threshold), "share_of_excess": _f(self.share),
+             "uncertainty": self.uncertainty, "reasons": list(self.reasons), "simulations": self.evaluations}
+        if self.holdout is not None:
+            d["holdout"] = self.holdout
+        if self.dt_check is not None:
+            d["dt_check"] = self.dt_check
+        if self.region is not None:
+            d["region"] = self.region
+        return d
+
+
+@dataclass
+class Round:
+    """One round of the loop: the reference model, every candidate (best first), the choice."""
+
+    effects: list
+    E_scale: float
+    rmse: float
+    sse: float
+    candidates: list
+    identified: Optional[str]
+    added: Optional[fx.Effect] = None
+    added_by: str = ""
+    not_applicable: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"effects": [e.name for e in self.effects], "effect_params": [e.to_dict() for e in self.effects],
+                "E_scale": _f(self.E_scale), "rmse": _f(self.rmse),
+                "candidates": [c.to_dict() for c in self.candidates], "identified": self.identified,
+                "added": None if self.added is None else self.added.to_dict(), "added_by": self.added_by,
+                "not_applicable": dict(self.not_applicable)}
+
+
+@dataclass
+class Diagnosis:
+    """Everything the diagnosis found (see :meth:`to_json` for the report)."""
+
+    solver: str
+    measurement_source: str
+    times: np.ndarray
+    rest_positions: np.ndarray
+    measured: np.ndarray
+    noise_sigma: float
+    baseline: Comparison
+    baseline_positions: np.ndarray
+    final: Comparison
+    final_positions: np.ndarray
+    rounds: list
+    history: list
+    history_positions: list
+    base_material: dict
+    effects_on: list
+    added: list
+    E_scale: float
+    identified: Optional[str]
+    wall_s: float
+    simulations: int
+    ground_height: Optional[float] = None
+    warnings: list = field(default_factory=list)
+    contact_times: list = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def candidates(self) -> list:
+        return self.rounds[0].candidates if self.rounds else []
+
+    @property
+    def noise_rmse(self) -> float:
+        return noise_rmse(self.noise_sigma)
+
+    def runner_up(self) -> Optional[dict]:
+        c = self.candidates
+        if len(c) < 2:
+            return None
+        gap = (c[1].sse - c[0].sse) / max(self.noise_sigma ** 2, 1e-300)
+        return {"effect": c[1].name, "rmse": _f(c[1].rmse), "gap_likelihood_ratio": _f(gap),
+                "rmse_ratio": _f(c[1].rmse / max(c[0].rmse, 1e-300))}
+
+    def to_json(self) -> dict:
+        """The ``unipixie.diagnosis/1`` report: the spec's keys plus extras."""
+        first = self.rounds[0] if self.rounds else None
+        out = {
+            "format": REPORT_FORMAT,
+            "solver": self.solver,
+            "baseline": self.baseline.to_dict(),
+            "candidates": [{"effect": c.name, "params": c.params(), "rmse": _f(c.rmse), "explained": _f(c.explained),
+                            "significant": bool(c.significant), **{k: v for k, v in c.to_dict().items()
+                                                                    if k not in ("effect", "params", "rmse",
+                                                                                 "explained", "significant")}}
+                           for c in (first.candidates if first else [])],
+            "identified": self.identified,
+            "history": self.history,
+            # extras
+            "measurement": self.measurement_source,
+            "noise_sigma": _f(self.noise_sigma),
+            "noise_rmse": _f(self.noise_rmse),
+            "runner_up": self.runner_up(),
+            "base_material": self.base_material,
+            "effects_on": [e.to_dict() for e in self.effects_on],
+            "added": [e.to_dict() for e in self.added],
+            "final": {"rmse": _f(self.final.rmse), "E_scale": _f(self.E_scale),
+                      "worst_points": self.final.worst_points, "worst_times": self.final.worst_times},
+            "rounds": [r.to_dict() for r in self.rounds],
+            "not_applicable": first.not_applicable if first else {},
+            "significance": {"alpha": sig.ALPHA, "min_share_of_excess": sig.MIN_SHARE,
+                             "holdout_fraction": sig.HOLDOUT_FRACTION,
+                             "rule": "significant = likelihood ratio ΔSSE/σ² above the chi-bar-squared threshold "
+                                     "(bounded parameters, Bonferroni over all candidates and regions) AND share of "
+                                     "the reference model's above-noise squared error removed ≥ min_share AND the "
+                                     "fit on the early frames does not predict the held-out later frames worse"},
+            "contact_times": self.contact_times,
+            "wall_s": _f(self.wall_s),
+            "simulations": int(self.simulations),
+            "warnings": list(self.warnings),
+            "settings": self.settings,
+        }
+        return out
+
+    def summary(self) -> str:
+        lines = [f"baseline RMSE {1e3 * self.baseline.rmse:.2f} mm, noise ≈ {1e3 * self.noise_rmse:.2f} mm "
+                 f"(σ = {1e3 * self.noise_sigma:.2f} mm per coordinate)"]
+        for c in self.candidates:
+            lines.append(f"  {c.name:18s} rmse {1e3 * c.rmse:8.2f} mm  explained {100 * c.explained:5.1f} %  "
+                         f"{'significant' if c.significant else '-'}  {_fmt_params(c.effect)}")
+        lines.append(f"identified: {self.identified or 'none (the model already explains these measurements)'}")
+        lines.append("history: " + " → ".join(f"{'+'.join(h['effects']) or 'base'} {1e3 * h['rmse']:.2f} mm"
+                                               for h in self.history))
+        bm = self.base_material
+        if bm.get("looks_wrong"):
+            lines.append(f"base material looks wrong: E/ρ × {bm['E_scale']:.3g} fits better ({bm['note']})")
+        return "\n".join(lines)
+
+
+def _f(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _fmt_params(effect: Optional[fx.Effect]) -> str:
+    if effect is None:
+        return ""
+    parts = []
+    for k, v in effect.params_dict().items():
+        if isinstance(v, list):
+            parts.append(f"{k}=[{', '.join(f'{x:.3g}' for x in v)}]")
+        elif isinstance(v, dict):
+            if "points" in v:
+                parts.append(f"region={len(v['points'])} points")
+            else:
+                parts.append(f"region=box")
+        else:
+            parts.append(f"{k}={v:.4g}")
+    return ", ".join(parts)
+
+
+# --------------------------------------------------------------------------- the problem
+class _Problem:
+    """The measurement, the prepared simulation and the residual evaluation shared by all fits."""
+
+    def __init__(self, measurement, sim, fixed: list, progress: Progress, max_batch: int):
+        self.m = measurement
+        self.sim = sim
+        self.fixed = list(fixed)
+        self.progress = progress
+        self.max_batch = max(1, int(max_batch))
+        self.measured = np.asarray(measurement.positions, dtype=np.float64)
+        self.obs = measurement.observed
+        self.target = self.measured[self.obs]  # (K, 3)
+        self.n_obs = int(self.obs.sum())
+        pts = np.concatenate([np.asarray(sim.sample_positions, dtype=np.float64).reshape(-1, 3),
+                              np.asarray(measurement.rest, dtype=np.float64)])
+        lo, hi = pts.min(0), pts.max(0)
+        pad = 1.0 + float(np.max(hi - lo))
+        self.everything_box = np.stack([lo - pad, hi + pad])
+        self.evaluations = 0
+        self.sim_seconds = 0.0
+
+    # effects for one model ---------------------------------------------------------------
+    def model_effects(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> list:
+        out = list(self.fixed if fixed is None else fixed) + list(effects)
+        if abs(scale - 1.0) > 1e-12:
+            out.append(fx.make("stiffness_region", factor=float(scale), region={"box": self.everything_box}))
+        return out
+
+    def run(self, effect_lists: list, sim=None) -> list:
+        """Trajectories (T, N, 3) positions for several effect lists, batched; a diverged run gives NaN."""
+        sim = sim or self.sim
+        out: list = []
+        for i in range(0, len(effect_lists), self.max_batch):
+            chunk = effect_lists[i:i + self.max_batch]
+            t0 = time.perf_counter()
+            try:
+                trajs = sim.run_batch(chunk)
+                out.extend(np.asarray(t.positions, dtype=np.float64) for t in trajs)
+            except SimulationDiverged:
+                for effs in chunk:  # find the offending environment(s); the others still count
+                    try:
+                        out.append(np.asarray(sim.run(effs).positions, dtype=np.float64))
+                    except SimulationDiverged:
+                        out.append(np.full(self.measured.shape, np.nan))
+            self.sim_seconds += time.perf_counter() - t0
+            self.evaluations += len(chunk)
+            self.progress.step(len(chunk))
+        return out
+
+    def residual_of(self, positions: np.ndarray) -> np.ndarray:
+        r = (positions[self.obs] - self.target).reshape(-1)
+        if not np.all(np.isfinite(r)):
+            return np.full(r.shape, 1e3)  # a diverged run: a huge, finite misfit
+        return r
+
+    def residuals(self, param: Parametrisation, sim=None) -> Callable[[list], list]:
+        def fn(us: list) -> list:
+            lists = []
+            for u in us:
+                scale, effs = param.realise(u)
+                lists.append(self.model_effects(scale, effs, param.fixed))
+            return [self.residual_of(p) for p in self.run(lists, sim)]
+
+        return fn
+
+    def positions_for(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> np.ndarray:
+        return self.run([self.model_effects(scale, effects, fixed)])[0]
+
+
+# --------------------------------------------------------------------------- problem scales
+@dataclass
+class _Scales:
+    duration: float
+    speed: float
+    E: float
+    gravity: float
+    size: float
+
+
+def _problem_scales(measurement, material) -> _Scales:
+    pos = measurement.positions
+    t = measurement.times
+    com = np.nanmean(pos, axis=1)
+    ok = np.all(np.isfinite(com), axis=1)
+    speed = 0.0
+    if ok.sum() >= 3:
+        v = np.gradient(com[ok], t[ok], axis=0)
+        speed = float(np.sqrt(np.mean(np.sum(v * v, axis=1))))
+    v0 = float(np.linalg.norm(measurement.scenario.initial_velocity))
+    g = float(np.linalg.norm(measurement.scenario.gravity))
+    size = float(np.linalg.norm(np.ptp(measurement.rest, axis=0)))
+    duration = max(float(t[-1] - t[0]), 1e-6)
+    speed = max(speed, v0, 0.1 * math.sqrt(max(g, 1e-3) * max(size, 1e-3)), 1e-3)
+    return _Scales(duration, speed, material.mean_E(), g, max(size, 1e-6))
+
+
+def _start_values(name: str, sc: _Scales, E_now: float) -> tuple[list[dict], dict]:
+    """Start grid (list of {param: value}) and typical magnitudes for the effect ``name``."""
+    D = sc.duration
+    ladder = [0.03, 0.1, 0.3, 1.0, 3.0]
+    if name == "linear_drag":
+        return [{"c": x / D} for x in ladder], {"c": 1.0 / D}
+    if name == "quadratic_drag":
+        u = 1.0 / (sc.speed * D)
+        return [{"k": x * u} for x in ladder], {"k": u}
+    if name == "material_damping":
+        return [{"eta": E_now * x} for x in (1e-5, 1e-4, 1e-3, 1e-2)], {"eta": E_now * 1e-3}
+    if name == "ground_friction":
+        return [{"mu": x} for x in (0.05, 0.15, 0.3, 0.6, 1.0)], {"mu": 0.3}
+    if name == "plasticity":
+        return [{"yield_stress": E_now * x} for x in (3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1)], \
+            {"yield_stress": E_now * 1e-2}
+    if name == "wind":
+        return [{"acceleration": np.zeros(3)}], {"acceleration": max(0.1 * sc.gravity, 0.1)}
+    # an effect added to the registry later: a few points across each scalar parameter's range
+    cls = fx.get(name)
+    starts: list[dict] = []
+    scales: dict = {}
+    for p in cls.fittable_params():
+        if p.size != 1:
+            continue
+        lo = p.lower if math.isfinite(p.lower) else -10.0
+        hi = p.upper if math.isfinite(p.upper) else 10.0
+        if p.log_scale:
+            lo_l = math.log(max(lo, hi * 1e-8, 1e-300))
+            vals = list(np.exp(np.linspace(lo_l, math.log(hi), 7)[1:-1]))
+        else:
+            vals = list(np.linspace(lo, hi, 7)[1:-1])
+        starts = [{p.name: v} for v in vals]
+        break
+    return starts or [{}], scales
+
+
+def _null_kind(cls: type, p: fx.Param) -> str:
+    """``"bounded"`` when the "no effect" value of ``p`` sits on (or beyond) a bound, else ``"interior"``."""
+    ctx = fx.EffectContext(sample_positions=np.zeros((1, 3)), tracked_rest_positions=np.zeros((1, 3)))
+    region = {"box": [[-1, -1, -1], [1, 1, 1]]}
+
+    def base_at(value) -> bool:
+        try:
+            kwargs = {p.name: value}
+            if cls is fx.StiffnessRegion:
+                kwargs["region"] = region
+            t = fx.combine([cls(**kwargs)], ctx)
+            return t.is_base()
+        except UserError:
+            return False
+
+    if p.size == 1:
+        if math.isfinite(p.lower) and base_at(p.lower):
+            return "bounded"
+        if math.isfinite(p.upper) and base_at(p.upper):
+            return "bounded"
+        for neutral in (0.0, 1.0):
+            if p.lower < neutral < p.upper and base_at(neutral):
+                return "interior"
+        return "bounded"  # the effect vanishes only in a limit beyond a bound (yield stress → ∞)
+    return "interior" if base_at(np.zeros(p.size)) else "bounded"
+
+
+def _count_kinds(effect: fx.Effect) -> tuple[int, int]:
+    interior = bounded = 0
+    for p in effect.fittable_params():
+        if _null_kind(type(effect), p) == "bounded":
+            bounded += p.size
+        else:
+            interior += p.size
+    return interior, bounded
+
+
+# --------------------------------------------------------------------------- reference model
+@dataclass
+class _Reference:
+    """The model a round compares against: base scale, effects added so far, their free parameters."""
+
+    scale: float
+    effects: list
+    sse: float
+    residual: np.ndarray
+    fixed: list
+
+
+def _param_for(ref: _Reference, extra: Sequence[fx.Effect], scales_by_name: dict,
+               fixed: Optional[list] = None) -> Parametrisation:
+    effects = list(ref.effects) + list(extra)
+    params: list[FreeParam] = [base_param(*BASE_SCALE_BOUNDS)]
+    for i, e in enumerate(effects):
+        params += free_params_for(e, i, scales_by_name.get(e.name, {}))
+    return Parametrisation(effects, params, list(ref.fixed if fixed is None else fixed), ref.scale)
+
+
+# --------------------------------------------------------------------------- the diagnosis
+def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_on: Iterable = (),
+             add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
+             settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
+             max_batch: int = 16, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 8,
+             progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
+    """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
+
+    effects_on: effects already on in the current model (effect objects or ``"name:k=v"`` specs);
+    kept fixed, except that a candidate of the same name refits them.
+    add: effect names to add in this order whatever the ranking (the user's picks); after them
+    the best significant effect is added each round.  max_additions: rounds that add an effect
+    (0: rank only).  candidates: effect names to try (default: the whole registry).
+    settings: solver settings (dict or the solver's settings object).  out_dir: write
+    ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
+    Returns a :class:`Diagnosis`.
+    """
+    from ...solvers import api
+
+    t_start = time.perf_counter()
+    say = log or (lambda s: None)
+    progress = progress or silent()
+    solver = api.canonical_solver(solver)
+    effects_on = [fx.parse(e) if isinstance(e, str) else e for e in effects_on]
+    for e in effects_on:
+        if not isinstance(e, fx.Effect):
+            raise UserError(f"effects_on: not an effect: {e!r}")
+    names = list(fx.EFFECTS) if candidates is None else [fx.get(n).name for n in candidates]
+    picks = [fx.get(n).name for n in add]
+    if max_additions < 0:
+        raise UserError("max_additions must be 0 or more")
+    max_additions = max(int(max_additions), len(picks))
+    if measurement.frame_count < 4:
+        raise UserError(f"{measurement.source or 'measurement'}: a diagnosis needs at least 4 instants, "
+                        f"got {measurement.frame_count}")
+    material = measurement.require_material()
+    body = measurement.body()
+    warnings = list(measurement.warnings) + list(body.warnings)
+    sigma = estimate_noise(measurement.positions)
+    say(f"measurement: {measurement.summary()}")
+    say(f"noise estimated from the tracks: σ = {1e3 * sigma:.3g} mm per coordinate "
+        f"(noise floor RMSE {1e3 * noise_rmse(sigma):.3g} mm)")
+    frame_times = measurement.times - measurement.times[0]
+    progress.set_status(f"preparing the {solver} simulation")
+    sim = api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
+                      device=device, settings=settings, progress=None)
+    warnings += list(getattr(sim, "warnings", []) or [])
+    for e in effects_on:
+        fx.check_supported([e], solver)
+    names = [n for n in names if solver in fx.get(n).solvers]
+    P = _Problem(measurement, sim, effects_on, progress, max_batch)
+    sc = _problem_scales(measurement, material)
+    # progress total is a rough count of simulations
+    progress.total = max(progress.total, 40.0 * (len(names) + 2) * (1 + min(max_additions, 2)))
+
+    # ---- 1. baseline: the model as given ------------------------------------------------------
+    base_pos = P.positions_for(1.0, [])
+    baseline = compare(base_pos, measurement.positions, measurement.times, measurement.rest,
+                       region_count=6)
+    sse_baseline = float(np.sum(P.residual_of(base_pos) ** 2))
+    say("1. the model as given: " + baseline.describe(noise_rmse(sigma)).replace("\n", "\n   "))
+
+    # ---- 2. base fit: E/ρ, several starts -----------------------------------------------------
+    progress.set_status("fitting the base material (E/ρ)")
+    ref0 = _Reference(1.0, [], sse_baseline, P.residual_of(base_pos), list(effects_on))
+    base_fit_param = Parametrisation([], [base_param(*BASE_SCALE_BOUNDS)], list(effects_on), 1.0)
+    starts = [np.array([math.log(s)]) for s in np.exp(np.linspace(math.log(0.25), math.log(4.0), 9))]
+    best, costs, res = grid_search(P.residuals(base_fit_param), starts)
+    if sse_baseline <= costs[best]:
+        u0, r0 = np.array([0.0]), ref0.residual
+    else:
+        u0, r0 = starts[best], res[best]
+    lo, hi = base_fit_param.bounds()
+    bf = levenberg_marquardt(P.residuals(base_fit_param), u0, lo, hi, base_fit_param.steps(), r0=r0,
+                             max_iter=lm_iterations, progress=progress)
+    base_scale = float(math.exp(bf.u[0]))
+    say(f"2. base fit (E/ρ; E and density cannot be separated from gravity and inertia): E × {base_scale:.3g} → "
+        f"RMSE {1e3 * math.sqrt(bf.cost / P.n_obs):.2f} mm")
+    ref = _Reference(base_scale, [], bf.cost, bf.residual, list(effects_on))
+
+    # ---- 3.-6. rounds ---------------------------------------------------------------------------
+    rounds: list[Round] = []
+    history = [{"effects": [e.name for e in effects_on], "rmse": float(baseline.rmse), "E_scale": 1.0}]
+    history_positions = [base_pos]
+    added: list[fx.Effect] = []
+    scales_by_name = {n: _start_values(n, sc, material.mean_E() * base_scale)[1] for n in names}
+    not_applicable = _not_applicable(names, measurement, sigma)
+    round_no = 0
+    while True:
+        round_no += 1
+        say(f"{2 + round_no}. round {round_no}: fitting {len(names) - len(not_applicable)} candidate effects "
+            f"against {'the refitted base' if not ref.effects else ' + '.join(e.name for e in ref.effects)} "
+            f"(RMSE {1e3 * math.sqrt(ref.sse / P.n_obs):.2f} mm)")
+        cands: list[CandidateResult] = []
+        for name in names:
+            if name in not_applicable:
+                continue
+            if name in [e.name for e in ref.effects] and name != "stiffness_region":
+                continue  # already added: its parameters are refitted with every later candidate
+            progress.set_status(f"round {round_no}: fitting {name}")
+            t0 = P.evaluations
+            if name == "stiffness_region":
+                c = _fit_region(P, ref, sc, material, scales_by_name, region_clusters, lm_iterations, sigma, progress)
+            else:
+                c = _fit_candidate(P, ref, name, sc, material, scales_by_name, lm_iterations, progress)
+            if c is None:
+                continue
+            c.evaluations = P.evaluations - t0
+            cands.append(c)
+        # significance ---------------------------------------------------------------------------
+        tests = sum(c.tests for c in cands)
+        for c in cands:
+            c.explained = 1.0 - c.sse / max(sse_baseline, 1e-300)
+            c.explained_beyond_base = 1.0 - c.sse / max(ref.sse, 1e-300)
+            c.lr = sig.likelihood_ratio(ref.sse, c.sse, sigma)
+            c.threshold = sig.lr_threshold(c.interior, c.bounded, sig.ALPHA, tests)
+            c.share = sig.share_of_excess(ref.sse, c.sse, P.n_obs, sigma)
+            c.reasons = []
+            if c.lr < c.threshold:
+                c.reasons.append(f"gain Λ = {c.lr:.3g} below the noise threshold {c.threshold:.3g}")
+            if c.share < sig.MIN_SHARE:
+                c.reasons.append(f"removes only {100 * max(c.share, 0):.0f} % of the above-noise error "
+                                 f"(needs {100 * sig.MIN_SHARE:.0f} %)")
+            c.significant = not c.reasons
+            s2 = max(sigma ** 2, c.sse / max(P.obs.sum() * 3 - len(c.free_params), 1))
+            if c.fit is not None:
+                unc = uncertainty(c.fit, c.free_params, s2)
+                c.uncertainty = {p.label: _f(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
+        cands.sort(key=lambda c: -c.score)
+        # held-out window and time-step checks on the leading candidates -------------------------------
+        checked = 0
+        holdout_cache: dict = {}
+        for c in cands:
+            if not c.significant or checked >= 3:
+                continue
+            checked += 1
+            if holdout:
+                progress.set_status(f"round {round_no}: held-out check of {c.name}")
+                c.holdout = _holdout_check(P, ref, c, sigma, progress, holdout_cache)
+                if c.holdout.get("ok") is False:
+                    c.significant = False
+                    c.reasons.append(c.holdout["verdict"])
+        top = next((c for c in cands if c.significant), None)
+        if dt_check and top is not None and top.name in DAMPING_LIKE:
+            progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
+            top.dt_check = _half_step_check(P, ref, top, sigma, device, settings, measurement, material, body,
+                                            frame_times, lm_iterations, progress)
+            if top.dt_check.get("ok") is False:
+                top.significant = False
+                top.reasons.append(top.dt_check["verdict"])
+        cands.sort(key=lambda c: (not c.significant, -c.score))
+        identified = next((c.name for c in cands if c.significant), None)
+        rnd = Round(list(ref.effects), ref.scale, math.sqrt(ref.sse / P.n_obs), ref.sse, cands, identified,
+                    not_applicable=dict(not_applicable))
+        rounds.append(rnd)
+        for c in cands:
+            say(f"   {c.name:18s} RMSE {1e3 * c.rmse:8.2f} mm  explained {100 * c.explained:5.1f} %  "
+                f"Λ {c.lr:10.4g} (needs {c.threshold:.3g})  share {100 * c.share:5.1f} %  "
+                f"{'SIGNIFICANT' if c.significant else 'no'}  {_fmt_params(c.effect)}")
+        for n, why in not_applicable.items():
+            say(f"   {n:18s} not tried: {why}")
+        # choose ---------------------------------------------------------------------------------------
+        if len(added) >= max_additions:
+            break
+        choice = None
+        if len(added) < len(picks):
+            want = picks[len(added)]
+            choice = next((c for c in cands if c.name == want), None)
+            if choice is None:
+                raise UserError(f"cannot add {want!r}: it was not fitted "
+                                f"({not_applicable.get(want, 'not a candidate for this solver or already added')})")
+            rnd.added_by = "user"
+        elif identified is not None:
+            choice = cands[0]
+            rnd.added_by = "ranking"
+        if choice is None:
+            say("   nothing significant remains: the model explains these measurements")
+            break
+        rnd.added = choice.effect
+        added.append(choice.effect)
+        ref = _Reference(choice.E_scale, list(choice.effects), choice.sse, choice.residual,
+                         [e for e in ref.fixed if e.name != choice.name or e.name == "stiffness_region"])
+        pos = P.positions_for(ref.scale, ref.effects, ref.fixed)
+        history_positions.append(pos)
+        history.append({"effects": [e.name for e in ref.fixed] + [e.name for e in ref.effects],
+                        "rmse": float(math.sqrt(ref.sse / P.n_obs)), "E_scale": float(ref.scale),
+                        "params": [e.to_dict() for e in ref.effects]})
+        say(f"   added {choice.name} ({_fmt_params(choice.effect)}), E × {ref.scale:.3g}: RMSE → "
+            f"{1e3 * history[-1]['rmse']:.2f} mm")
+        scales_by_name.update({n: _start_values(n, sc, material.mean_E() * ref.scale)[1] for n in names
+                               if n not in [e.name for e in ref.effects]})
+
+    # ---- 7. base material on its own --------------------------------------------------------------
+    progress.set_status("checking the base material")
+    base_material = _base_material_check(P, ref, material, sigma, lm_iterations, progress, scales_by_name)
+    if base_material.get("looks_wrong"):
+        say(f"   base material looks wrong: E/ρ × {base_material['E_scale']:.3g} "
+            f"(RMSE {1e3 * base_material['rmse_stated_E']:.2f} mm with the stated E, "
+            f"{1e3 * base_material['rmse_fitted_E']:.2f} mm with the fitted one)")
+    final_pos = history_positions[-1] if len(history_positions) > 1 else P.positions_for(ref.scale, ref.effects,
+                                                                                          ref.fixed)
+    if len(history_positions) == 1:
+        history_positions.append(final_pos)
+    final = compare(final_pos, measurement.positions, measurement.times, measurement.rest,
+                    regions={r.name: r.indices for r in baseline.regions})
+    identified = rounds[0].identified if rounds else None
+    contact = _contact_times(final_pos, measurement.times, measurement.scenario.ground_height, sc.size)
+    settings_used = _settings_dict(sim)
+    result = Diagnosis(solver=solver, measurement_source=str(measurement.source), times=measurement.times,
+                       rest_positions=np.asarray(measurement.rest), measured=measurement.positions,
+                       noise_sigma=sigma, baseline=baseline, baseline_positions=base_pos, final=final,
+                       final_positions=final_pos, rounds=rounds, history=history,
+                       history_positions=history_positions, base_material=base_material, effects_on=effects_on,
+                       added=added, E_scale=ref.scale, identified=identified, wall_s=0.0,
+                       simulations=P.evaluations, ground_height=measurement.scenario.ground_height,
+                       warnings=warnings, contact_times=contact, settings=settings_used)
+    result.wall_s = time.perf_counter() - t_start
+    say(f"done in {result.wall_s:.1f} s ({P.evaluations} simulations, {P.sim_seconds:.1f} s simulating)")
+    if out_dir is not None:
+        from . import report
+
+        paths = report.write_report(result, out_dir)
+        say(f"report: {paths['html']}")
+    return result
+
+
+# --------------------------------------------------------------------------- candidates
+def _not_applicable(names: Sequence[str], measurement, sigma: float) -> dict:
+    out = {}
+    ground = measurement.scenario.ground_height
+    if "ground_friction" in names:
+        if ground is None:
+            out["ground_friction"] = "the scenario has no ground"
+        else:
+            z = measurement.positions[..., 2]
+            gap = np.nanmin(z) - ground if np.any(np.isfinite(z)) else math.inf
+            size = float(np.linalg.norm(np.ptp(measurement.rest, axis=0)))
+            if gap > 0.02 * size + 5 * sigma:
+                out["ground_friction"] = f"the solid never comes within {1e3 * gap:.0f} mm of the ground"
+    return out
+
+
+def _fit_candidate(P: _Problem, ref: _Reference, name: str, sc: _Scales, material, scales_by_name: dict,
+                   lm_iterations: int, progress: Progress) -> Optional[CandidateResult]:
+    cls = fx.get(name)
+    starts_vals, _ = _start_values(name, sc, material.mean_E() * ref.scale)
+    template_vals = {}
+    fixed = list(ref.fixed)
+    replaced = next((e for e in fixed if e.name == name), None)
+    if replaced is not None:  # the user's effect of this name is refitted, not stacked
+        fixed = [e for e in fixed if e is not replaced]
+        starts_vals = [dict(replaced.values)] + starts_vals
+    template = cls(**(dict(replaced.values) if replaced is not None else {**template_vals, **starts_vals[0]}))
+    param = _param_for(ref, [template], scales_by_name, fixed)
+    ufn = P.residuals(param)
+    base_u = param.internal()
+    idx = [i for i, p in enumerate(param.params) if p.slot == len(param.effects) - 1]
+    starts = []
+    for sv in starts_vals:
+        e = cls(**{**template.values, **sv})
+        p2 = param.with_internal(base_u)
+        p2.effects[-1] = e
+        starts.append(p2.internal())
+    if name == "wind":
+        starts.append(_wind_start(P, ref, param, base_u, idx))
+    best, costs, res = grid_search(ufn, starts)
+    lo, hi = param.bounds()
+    fit = levenberg_marquardt(ufn, starts[best], lo, hi, param.steps(), r0=res[best], max_iter=lm_iterations,
+                              progress=progress)
+    scale, effs = param.realise(fit.u)
+    interior, bounded = _count_kinds(effs[-1])
+    return CandidateResult(name=name, effect=effs[-1], effects=effs, E_scale=scale, sse=fit.cost,
+                           rmse=math.sqrt(fit.cost / P.n_obs), residual=fit.residual, fit=fit, parametrisation=param,
+                           free_params=list(param.params), interior=interior, bounded=bounded, tests=1)
+
+
+def _wind_start(P: _Problem, ref: _Reference, param: Parametrisation, base_u: np.ndarray, idx: list) -> np.ndarray:
+    """Start for the wind acceleration: least squares of the centre-of-mass drift on ½ t²."""
+    r = ref.residual.reshape(-1, 3)  # simulated − measured at observed samples
+    t = (P.m.times - P.m.times[0])
+    tt = np.broadcast_to(t[:, None], P.obs.shape)[P.obs]
+    w = 0.5 * tt * tt
+    a = -(w @ r) / max(float(w @ w), 1e-300)
+    u = base_u.copy()
+    lo, hi = param.bounds()
+    for j, i in enumerate(idx):
+        u[i] = float(np.clip(param.params[i].to_internal(float(a[param.params[i].component])), lo[i], hi[i]))
+    return u
+
+
+def _region_candidates(rest: np.ndarray, clusters: int) -> list[tuple[str, dict, np.ndarray]]:
+    """(label, region dict for the effect, member point indices) for halves and k-means clusters."""
+    out = []
+    lo, hi = rest.min(0), rest.max(0)
+    pad = 0.01 * float(np.max(hi - lo)) + 1e-9
+    for axis in range(3):
+        if hi[axis] - lo[axis] <= 1e-9:
+            continue
+        mid = float(np.median(rest[:, axis]))
+        for side in ("low", "high"):
+            blo, bhi = lo - pad, hi + pad
+            if side == "low":
+                bhi = bhi.copy()
+                bhi[axis] = mid
+                members = np.nonzero(rest[:, axis] <= mid)[0]
+            else:
+                blo = blo.copy()
+                blo[axis] = mid
+                members = np.nonzero(rest[:, axis] >= mid)[0]
+            if 0 < len(members) < len(rest):
+                out.append((f"{'xyz'[axis]} {side} half", {"box": np.stack([blo, bhi])}, members))
+    if clusters > 1 and len(rest) >= 2 * clusters:
+        labels = kmeans_regions(rest, clusters)
+        for k in range(labels.max() + 1):
+            members = np.nonzero(labels == k)[0]
+            if 0 < len(members) < len(rest):
+                out.append((f"cluster {k}", {"points": members}, members))
+    return out
+
+
+def _fit_region(P: _Problem, ref: _Reference, sc: _Scales, material, scales_by_name: dict, clusters: int,
+                lm_iterations: int, sigma: float, progress: Progress) -> Optional[CandidateResult]:
+    rest = np.asarray(P.m.rest, dtype=np.float64)
+    regions = _region_candidates(rest, clusters)
+    if not regions:
+        return None
+    # E sensitivity of the reference (to compensate probes for a global stiffness change)
+    up = 1.25
+    probe_lists = [P.model_effects(ref.scale * up, ref.effects, ref.fixed)]
+    factors = (1.0 / 3.0, 3.0)
+    for _, region, _ in regions:
+        for f in factors:
+            probe_lists.append(P.model_effects(ref.scale, list(ref.effects) + [fx.make("stiffness_region", factor=f,
+                                                                                          region=region)], ref.fixed))
+    pos = P.run(probe_lists)
+    rE = P.residual_of(pos[0]) - ref.residual
+    jE = rE / math.log(up)
+    jj = float(jE @ jE)
+    scored = []
+    for i, (label, region, members) in enumerate(regions):
+        best = math.inf
+        best_f = 1.0
+        for j, f in enumerate(factors):
+            r = P.residual_of(pos[1 + 2 * i + j])
+            comp = float(r @ r) - ((float(r @ jE) ** 2) / jj if jj > 0 else 0.0)
+            if comp < best:
+                best, best_f = comp, f
+        scored.append((best, i, best_f))
+    scored.sort()
+    results = []
+    for best, i, f0 in scored[:3]:
+        label, region, members = regions[i]
+        template = fx.make("stiffness_region", factor=f0, region=region)
+        param = _param_for(ref, [template], scales_by_name)
+        ufn = P.residuals(param)
+        lo, hi = param.bounds()
+        fit = levenberg_marquardt(ufn, param.internal(), lo, hi, param.steps(), max_iter=lm_iterations,
+                                  progress=progress)
+        results.append((fit, param, label, region, members))
+    fit, param, label, region, members = min(results, key=lambda x: x[0].cost)
+    scale, effs = param.realise(fit.u)
+    eff = effs[-1]
+    reg = {"name": label, "points": [int(i) for i in members], "box": region_box(rest, members),
+           "regions_tried": len(regions)}
+    interior, bounded = _count_kinds(eff)
+    return CandidateResult(name="stiffness_region", effect=eff, effects=effs, E_scale=scale, sse=fit.cost,
+                           rmse=math.sqrt(fit.cost / P.n_obs), residual=fit.residual, fit=fit, parametrisation=param,
+                           free_params=list(param.params), interior=interior, bounded=bounded, tests=len(regions),
+                           region=reg)
+
+
+# --------------------------------------------------------------------------- checks
+def _window_residuals(fn: Callable[[list], list], keep: np.ndarray, store: dict) -> Callable[[list], list]:
+    """Residuals restricted to the entries ``keep``; full residuals are remembered by parameter vector."""
+    def w(us):
+        full = fn(us)
+        for u, r in zip(us, full):
+            store[np.asarray(u).tobytes()] = r
+        return [r[keep] for r in full]
+
+    return w
+
+
+def _holdout_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: float, progress: Progress,
+                   cache: dict) -> dict:
+    """Refit reference and candidate on the early frames; compare their errors on the later frames.
+
+    cache: holds the reference's held-out error for the round (computed once)."""
+    t = P.m.times - P.m.times[0]
+    split = sig.HOLDOUT_FRACTION * t[-1]
+    train_frames = t <= split
+    frame_of_sample = np.broadcast_to(np.arange(len(t))[:, None], P.obs.shape)[P.obs]
+    train = np.repeat(train_frames[frame_of_sample], 3)
+    test = ~train
+    n_test = int(test.sum() // 3)
+    if n_test < 10 or int(train.sum() // 3) < 10:
+        return {"ok": None, "verdict": "too few samples for a held-out window", "split_time": float(split)}
+    out = {"split_time": float(split + P.m.times[0])}
+    sse_test = {}
+    for key, param, u0 in (("reference", _param_for(ref, [], {}), None), ("candidate", c.parametrisation, c.fit.u)):
+        if key == "reference" and "reference" in cache:
+            sse_test[key] = cache["reference"]
+            continue
+        if u0 is None:
+            u0 = param.internal()
+        store: dict = {}
+        fn = _window_residuals(P.residuals(param), train, store)
+        lo, hi = param.bounds()
+        fit = levenberg_marquardt(fn, u0, lo, hi, param.steps(), max_iter=3, progress=progress)
+        full = store.get(np.asarray(fit.u).tobytes())
+        if full is None:
+            full = P.residuals(param)([fit.u])[0]
+        sse_test[key] = float(np.sum(full[test] ** 2))
+        if key == "reference":
+            cache["reference"] = sse_test[key]
+    out.update({"sse_reference": sse_test["reference"], "sse_candidate": sse_test["candidate"],
+                "rmse_reference": math.sqrt(sse_test["reference"] / n_test),
+                "rmse_candidate": math.sqrt(sse_test["candidate"] / n_test)})
+    # worse on the held-out frames by more than the noise can explain → the fit does not generalise
+    margin = 3.0 * math.sqrt(2.0 * 3 * n_test) * sigma * sigma
+    ok = sse_test["candidate"] <= sse_test["reference"] + margin
+    out["ok"] = bool(ok)
+    out["verdict"] = ("predicts the held-out frames at least as well" if ok else
+                      "fitted on the early frames it predicts the held-out later frames worse than the base model")
+    return out
+
+
+def half_step_settings(sim, settings):
+    """Solver settings with half the time step, or ``None`` when the solver exposes no time-step knob.
+
+    Looks for a settings field ``dt`` / ``substep_dt`` / ``time_step`` (halved), else
+    ``cfl`` / ``safety`` / ``courant`` (halved), else ``substeps`` (doubled).
+    """
+    s = getattr(sim, "settings", None)
+    if s is None or not dataclasses.is_dataclass(s):
+        return None
+    names = {f.name for f in dataclasses.fields(s)}
+    for key in ("dt", "substep_dt", "time_step", "max_dt"):
+        if key in names and getattr(s, key) is not None:
+            return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
+    for key in ("cfl", "safety", "courant"):
+        if key in names and getattr(s, key) is not None:
+            return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
+    if "substeps" in names and getattr(s, "substeps") is not None:
+        return dataclasses.replace(s, substeps=int(getattr(s, "substeps")) * 2)
+    return None
+
+
+def _half_step_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: float, device: str, settings,
+                     measurement, material, body, frame_times, lm_iterations: int, progress: Progress) -> dict:
+    from ...solvers import api
+
+    half = half_step_settings(P.sim, settings)
+    if half is None:
+        return {"ok": None, "verdict": "the solver exposes no time-step setting; not re-checked"}
+    sim2 = api.prepare(P.sim.solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
+                       device=device, settings=half, progress=None)
+    out = {}
+    sses = {}
+    for key, param, u0 in (("reference", _param_for(ref, [], {}), None), ("candidate", c.parametrisation, c.fit.u)):
+        if u0 is None:
+            u0 = param.internal()
+        fn = P.residuals(param, sim=sim2)
+        lo, hi = param.bounds()
+        fit = levenberg_marquardt(fn, u0, lo, hi, param.steps(), max_iter=max(3, lm_iterations // 2),
+                                  progress=progress)
+        sses[key] = fit.cost
+        if key == "candidate":
+            _, effs = param.realise(fit.u)
+            out["params_half_step"] = effs[-1].params_dict()
+    lr = sig.likelihood_ratio(sses["reference"], sses["candidate"], sigma)
+    share = sig.share_of_excess(sses["reference"], sses["candidate"], P.n_obs, sigma)
+    ok = lr >= c.threshold and share >= sig.MIN_SHARE
+    out.update({"params": c.effect.params_dict(), "likelihood_ratio_half_step": lr, "share_half_step": share,
+                "ok": bool(ok),
+                "verdict": ("the effect is still needed at half the time step" if ok else
+                            "at half the time step the improvement is no longer significant: numerical dissipation")})
+    return out
+
+
+def _base_material_check(P: _Problem, ref: _Reference, material, sigma: float, lm_iterations: int,
+                         progress: Progress, scales_by_name: dict) -> dict:
+    """Is E/ρ (with the effects found) significantly different from the stated value?"""
+    note = ("under gravity and inertia alone the motion depends on E/ρ only: E and density cannot both be "
+            "fitted, so the scale applies to E at the stated density (equivalently to 1/ρ)")
+    # the model with E fixed at the stated value, effects refitted
+    effects = list(ref.effects)
+    params = []
+    for i, e in enumerate(effects):
+        params += free_params_for(e, i, scales_by_name.get(e.name, {}))
+    param = Parametrisation(effects, params, list(ref.fixed), 1.0)
+    fn = P.residuals(param)
+    if params:
+        lo, hi = param.bounds()
+        fit = levenberg_marquardt(fn, param.internal(), lo, hi, param.steps(), max_iter=lm_iterations,
+                                  progress=progress)
+        sse_stated = fit.cost
+    else:
+        sse_stated = float(np.sum(fn([np.zeros(0)])[0] ** 2))
+    lr = sig.likelihood_ratio(sse_stated, ref.sse, sigma)
+    thr = sig.lr_threshold(1, 0, sig.ALPHA, 1)
+    share = sig.share_of_excess(sse_stated, ref.sse, P.n_obs, sigma)
+    looks_wrong = bool(lr >= thr and share >= sig.MIN_SHARE and abs(math.log(ref.scale)) > math.log(1.02))
+    E_stated = material.mean_E()
+    return {"E_scale": float(ref.scale), "E_stated": E_stated, "E_fitted": E_stated * ref.scale,
+            "density_stated": material.mean_density(),
+            "E_over_density_stated": E_stated / material.mean_density(),
+            "E_over_density_fitted": E_stated * ref.scale / material.mean_density(),
+            "rmse_stated_E": math.sqrt(sse_stated / P.n_obs), "rmse_fitted_E": math.sqrt(ref.sse / P.n_obs),
+            "likelihood_ratio": _f(lr), "threshold": _f(thr), "share_of_excess": _f(share),
+            "looks_wrong": looks_wrong, "note": note}
+
+
+def _contact_times(positions: np.ndarray, times: np.ndarray, ground: Optional[float], size: float) -> list:
+    """Instants (s) at which the simulated solid first touches the ground after being clear of it."""
+    if ground is None:
+        return []
+    zmin = np.nanmin(positions[..., 2], axis=1) - ground
+    touching = zmin <= 0.01 * size
+    out = []
+    for i in range(len(times)):
+        if touching[i] and (i == 0 or not touching[i - 1]):
+            out.append(float(times[i]))
+    return out
+
+
+def _settings_dict(sim) -> dict:
+    s = getattr(sim, "settings", None)
+    if s is not None and dataclasses.is_dataclass(s):
+        out = {}
+        for f in dataclasses.fields(s):
+            v = getattr(s, f.name)
+            if isinstance(v, (int, float, str, bool)) or v is None:
+                out[f.name] = v
+        return out
+    return {}
