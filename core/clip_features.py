@@ -283,9 +283,20 @@ def random_clip_architecture(model: str = CLIP_MODEL, seed: int = 0, device: str
     return _from_model(f"{model}-random-weights", clip, device, {"model": model, "random_seed": int(seed)})
 
 
+_LOADED: dict = {}
+"""Extractors loaded in this process, by (identity, device): the add-on and repeated API calls reuse them."""
+
+
 def make_extractor(offline: bool = False, clip_weights: Optional[str | os.PathLike] = None, device: str = "cpu",
                    model: str = CLIP_MODEL) -> FeatureExtractor:
-    """The extractor the options ask for: the offline one when ``offline``, else CLIP from local weights."""
-    if offline:
-        return offline_extractor(device=device)
-    return load_clip(clip_weights, model=model, device=device)
+    """The extractor the options ask for: the offline one when ``offline``, else CLIP from local weights.
+    Loaded once per process and kept (keyed by what determines its features and by device)."""
+    import json
+
+    identity = offline_identity() if offline else {"model": model, "weights": weights_identity(
+        resolve_clip_weights(clip_weights, model))}
+    key = (json.dumps(identity, sort_keys=True), _device(device))
+    if key not in _LOADED:
+        _LOADED.clear()                      # keep at most one model in memory
+        _LOADED[key] = offline_extractor(device=device) if offline else load_clip(clip_weights, model=model, device=device)
+    return _LOADED[key]

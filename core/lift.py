@@ -32,6 +32,8 @@ units) and the ``GRID_RESOLUTION``³ grid over ``[-0.5, 0.5]³``.
 
 from __future__ import annotations
 
+import math
+import warnings as _warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -194,13 +196,51 @@ def voxel_normals(occupancy: np.ndarray, indices: np.ndarray, sigma: float = NOR
 
 @dataclass
 class LiftResult:
-    """features: (K, D) float32 for the K occupied voxels (argwhere order); views_per_voxel: (K,) int32,
+    """features: (K, D) float16 for the K occupied voxels (argwhere order); views_per_voxel: (K,) int32,
     how many views painted each voxel (0 for interior / unseen voxels, filled from the nearest painted)."""
 
     features: np.ndarray
     views_per_voxel: np.ndarray
     painted_fraction_of_surface: float
     surface_voxels: int
+
+
+# ----------------------------------------------------------------------------- cameras
+def fibonacci_directions(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly on the sphere (Fibonacci lattice, z from +1 to -1, never at a pole)."""
+    i = np.arange(count, dtype=np.float64)
+    z = 1.0 - (2.0 * i + 1.0) / count
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def look_at_origin(position: np.ndarray) -> np.ndarray:
+    """(4, 4) camera-to-world of a Blender camera at ``position`` looking at the origin, world +Z up."""
+    pos = np.asarray(position, dtype=np.float64)
+    z_axis = pos / np.linalg.norm(pos)                         # the camera looks along -Z
+    up = np.array([0.0, 0.0, 1.0]) if abs(z_axis[2]) < 0.999 else np.array([0.0, 1.0, 0.0])
+    x_axis = np.cross(up, z_axis)
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x_axis, y_axis, z_axis, pos
+    return m
+
+
+def camera_rig(count: int, radius: float, resolution: int, fov_degrees: float):
+    """Cameras on a Fibonacci sphere around a subject of bounding radius ``radius`` (normalised units).
+
+    Returns (cam_to_world (V, 4, 4), intrinsics (V, 3, 3), distance, lens_mm, sensor_mm).
+    """
+    half = math.radians(fov_degrees) / 2.0
+    distance = 1.05 * radius / math.sin(half)
+    sensor = 36.0
+    lens = sensor / (2.0 * math.tan(half))
+    f_px = lens / sensor * resolution
+    K = np.array([[f_px, 0.0, resolution / 2.0], [0.0, f_px, resolution / 2.0], [0.0, 0.0, 1.0]])
+    c2w = np.stack([look_at_origin(d * distance) for d in fibonacci_directions(count)])
+    return c2w, np.repeat(K[None], count, axis=0), distance, lens, sensor
 
 
 def project(views: Views, points: np.ndarray):
@@ -260,7 +300,6 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     device: torch device for the sampling and accumulation (``"cpu"`` or ``"cuda"``).
     """
     import torch
-    import torch.nn.functional as F
     from scipy import ndimage
 
     geometry = geometry or unit_cube_grid()
@@ -290,26 +329,33 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     weight = np.where(visible, np.maximum(np.abs(cos), 1e-3), 0.0)
 
     S = len(sidx)
-    acc = torch.zeros((S, D), dtype=torch.float32, device=device)
     wsum = weight.sum(axis=0)
-    maps = fmap.permute(0, 3, 1, 2)                                          # (V, D, gh, gw)
-    for view in range(V):
-        sel = np.nonzero(visible[view])[0]
-        if len(sel) == 0:
-            continue
-        gx = 2.0 * u[view, sel] / W - 1.0
-        gy = 2.0 * v[view, sel] / H - 1.0
-        grid = torch.as_tensor(np.stack([gx, gy], axis=-1), dtype=torch.float32, device=device).view(1, 1, -1, 2)
-        sampled = F.grid_sample(maps[view:view + 1], grid, mode="bilinear", padding_mode="border",
-                                align_corners=False)[0, :, 0].T            # (n, D)
-        w = torch.as_tensor(weight[view, sel], dtype=torch.float32, device=device)[:, None]
-        acc.index_add_(0, torch.as_tensor(sel, device=device), sampled * w)
     painted = wsum > 0
     if not painted.any():
         raise UserError("no view sees any surface voxel: the views do not show this object (wrong cameras, "
                         "empty renders, or depth in other units than the occupancy grid)")
-    surf_feats = (acc[torch.as_tensor(painted, device=device)] /
-                  torch.as_tensor(wsum[painted], dtype=torch.float32, device=device)[:, None]).cpu().numpy()
+    # Bilinear sampling (align_corners=False, border) of every seeing view, weighted and summed, as one
+    # sparse (S, V*gh*gw) x dense (V*gh*gw, D) product: row s holds 4 bilinear taps per seeing view.
+    gh, gw = int(fmap.shape[1]), int(fmap.shape[2])
+    surf_i, view_i = np.nonzero(visible.T)                                    # sorted by voxel (CSR rows)
+    x = np.clip(u[view_i, surf_i] / W * gw - 0.5, 0.0, gw - 1.0)
+    y = np.clip(v[view_i, surf_i] / H * gh - 0.5, 0.0, gh - 1.0)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, gw - 1), np.minimum(y0 + 1, gh - 1)
+    w = weight[view_i, surf_i] / wsum[surf_i]
+    base = view_i * (gh * gw)
+    cols = np.stack([base + y0 * gw + x0, base + y0 * gw + x1, base + y1 * gw + x0, base + y1 * gw + x1], axis=1)
+    vals = np.stack([w * (1 - fx) * (1 - fy), w * fx * (1 - fy), w * (1 - fx) * fy, w * fx * fy], axis=1)
+    crow = np.zeros(S + 1, dtype=np.int64)
+    crow[1:] = np.cumsum(4 * np.bincount(surf_i, minlength=S))
+    with _warnings.catch_warnings():
+        _warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        taps = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(cols.reshape(-1)),
+                                       torch.as_tensor(vals.reshape(-1), dtype=torch.float32),
+                                       size=(S, V * gh * gw), device=device)
+        surf_all = taps @ fmap.reshape(V * gh * gw, D)                         # (S, D); weights sum to 1
+    surf_feats = surf_all[torch.as_tensor(painted, device=device)].to(torch.float16).cpu().numpy()
 
     # interior and unseen voxels: features of the nearest painted surface voxel
     painted_grid = np.zeros((R, R, R), dtype=bool)
@@ -320,7 +366,7 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     nearest = ndimage.distance_transform_edt(~painted_grid, return_distances=False, return_indices=True)
     oidx = np.argwhere(occ)
     src = row[nearest[0][tuple(oidx.T)], nearest[1][tuple(oidx.T)], nearest[2][tuple(oidx.T)]]
-    features = surf_feats[src]
+    features = surf_feats[src]                                                  # (K, D) float16
     count_grid = np.zeros((R, R, R), dtype=np.int32)
     count_grid[tuple(sidx.T)] = visible.sum(axis=0)
     return LiftResult(features=features, views_per_voxel=count_grid[tuple(oidx.T)],
@@ -336,5 +382,5 @@ def feature_grid(views: Views, feature_maps, occupancy: np.ndarray, feature_mode
     m.update(painted_fraction_of_surface=res.painted_fraction_of_surface, surface_voxels=res.surface_voxels,
              mean_views_per_surface_voxel=float(res.views_per_voxel[res.views_per_voxel > 0].mean())
              if np.any(res.views_per_voxel > 0) else 0.0)
-    return FeatureGrid(geometry=geometry, occupancy=np.asarray(occupancy, bool), features=res.features.astype(np.float16),
+    return FeatureGrid(geometry=geometry, occupancy=np.asarray(occupancy, bool), features=res.features,
                        feature_model=feature_model, meta=m)

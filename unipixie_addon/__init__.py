@@ -15,6 +15,7 @@ _MODULE_NAMES = (
     "operators_setup",
     "panels",
     "operators_bake",
+    "operators_features",
 )
 
 

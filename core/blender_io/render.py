@@ -29,20 +29,20 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import math
 import shutil
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Generator, Sequence
+from typing import Generator
 
 import bpy
 import numpy as np
 
 from ..errors import UserError
+from ..lift import camera_rig, look_at_origin
 from ..normalise import Normalisation
 from ..types import Views
-from .scene_import import geometry_objects, remove_new_ids, snapshot_ids
+from .scene_import import geometry_objects, quiet_blender_output, remove_new_ids, snapshot_ids
 
 ENGINES = ("cycles", "workbench")
 RENDER_VERSION = 1
@@ -124,8 +124,10 @@ def evaluated_meshes(objects):
         yield out
     finally:
         for _, mesh, _ in out:
-            if mesh.name in bpy.data.meshes:
+            try:
                 bpy.data.meshes.remove(mesh)
+            except ReferenceError:         # already removed with the temporary scene
+                pass
 
 
 def _triangles(mesh, matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -292,44 +294,6 @@ def subject_fingerprint(objects) -> str:
     return describe_subject(objects).fingerprint
 
 
-# --------------------------------------------------------------------------- cameras
-def fibonacci_directions(count: int) -> np.ndarray:
-    """(count, 3) unit vectors spread evenly on the sphere (Fibonacci lattice, z from +1 to -1, never at a pole)."""
-    i = np.arange(count, dtype=np.float64)
-    z = 1.0 - (2.0 * i + 1.0) / count
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    phi = i * math.pi * (3.0 - math.sqrt(5.0))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def look_at_origin(position: np.ndarray) -> np.ndarray:
-    """(4, 4) camera-to-world of a Blender camera at ``position`` looking at the origin, world +Z up."""
-    pos = np.asarray(position, dtype=np.float64)
-    z_axis = pos / np.linalg.norm(pos)                         # the camera looks along -Z
-    up = np.array([0.0, 0.0, 1.0]) if abs(z_axis[2]) < 0.999 else np.array([0.0, 1.0, 0.0])
-    x_axis = np.cross(up, z_axis)
-    x_axis /= np.linalg.norm(x_axis)
-    y_axis = np.cross(z_axis, x_axis)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x_axis, y_axis, z_axis, pos
-    return m
-
-
-def camera_rig(count: int, radius: float, resolution: int, fov_degrees: float):
-    """Cameras on a Fibonacci sphere around a subject of bounding radius ``radius`` (normalised units).
-
-    Returns (cam_to_world (V, 4, 4), intrinsics (V, 3, 3), distance, lens_mm, sensor_mm).
-    """
-    half = math.radians(fov_degrees) / 2.0
-    distance = 1.05 * radius / math.sin(half)
-    sensor = 36.0
-    lens = sensor / (2.0 * math.tan(half))
-    f_px = lens / sensor * resolution
-    K = np.array([[f_px, 0.0, resolution / 2.0], [0.0, f_px, resolution / 2.0], [0.0, 0.0, 1.0]])
-    c2w = np.stack([look_at_origin(d * distance) for d in fibonacci_directions(count)])
-    return c2w, np.repeat(K[None], count, axis=0), distance, lens, sensor
-
-
 # --------------------------------------------------------------------------- the temporary scene
 def _setup_world(scene) -> None:
     world = bpy.data.worlds.new("UniPixie even light")
@@ -371,8 +335,9 @@ def _cycles_device(requested: str):
     try:
         for backend in ([saved_type] if saved_type not in ("", "NONE") else []) + ["OPTIX", "CUDA", "HIP", "ONEAPI", "METAL"]:
             try:
-                prefs.compute_device_type = backend
-                prefs.get_devices_for_type(backend)
+                with quiet_blender_output():
+                    prefs.compute_device_type = backend
+                    prefs.get_devices_for_type(backend)
             except (TypeError, ValueError, AttributeError):
                 continue
             gpus = [d for d in prefs.devices if d.type == backend]
@@ -483,8 +448,6 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
     the current view and removes everything it created."""
     settings = settings or RenderSettings()
     objs = geometry_objects(_as_list(objects))
-    user_scene = bpy.context.scene
-    user_window_scene = bpy.context.window.scene if bpy.context.window else None
     before = snapshot_ids()
     tmp_dir = Path(tempfile.mkdtemp(prefix="unipixie-views-"))
     try:
@@ -525,7 +488,12 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
                     prefix = f"view{v:03d}_"
                     colour_node.file_name = prefix
                     depth_node.file_name = prefix
-                    bpy.ops.render.render(write_still=False, scene=scene.name)
+                    with quiet_blender_output() as log_tail:
+                        try:
+                            bpy.ops.render.render(write_still=False, scene=scene.name)
+                        except RuntimeError as exc:
+                            raise UserError(f"Blender failed to render view {v}: {str(exc).strip()} "
+                                            f"(last output: {log_tail()})") from None
                     rgba = _read_png(_find_output(tmp_dir, prefix, "rgba", ".png"))
                     alpha = rgba[..., 3:4]
                     images[v] = rgba[..., :3] * alpha + bg * (1.0 - alpha)
@@ -539,9 +507,6 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
     finally:
         remove_new_ids(before)
         shutil.rmtree(tmp_dir, ignore_errors=True)
-        if bpy.context.window is not None and user_window_scene is not None and bpy.context.window.scene != user_window_scene:
-            bpy.context.window.scene = user_window_scene
-        del user_scene
 
 
 def render_views(objects, settings: RenderSettings | None = None, progress=None) -> Views:

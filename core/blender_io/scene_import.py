@@ -14,6 +14,9 @@ as it was.
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
+import tempfile
 from pathlib import Path
 
 import bpy
@@ -24,6 +27,34 @@ MESH_FILE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
 SUPPORTED_SUFFIXES = MESH_FILE_SUFFIXES + (".blend",)
 GEOMETRY_TYPES = ("MESH", "CURVE", "SURFACE", "META", "FONT")
 """Object types that can be turned into a triangle mesh (``bpy.data.meshes.new_from_object``)."""
+
+
+@contextlib.contextmanager
+def quiet_blender_output():
+    """Send what Blender prints on standard output (per-render "Saved: ..." lines, importer timings) to a
+    temporary log instead of the terminal; yields a function returning the log's last lines (for error
+    messages)."""
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:              # no usable standard output: nothing to silence
+        yield lambda: ""
+        return
+    log = tempfile.TemporaryFile(mode="w+b")
+
+    def tail(lines: int = 5) -> str:
+        log.flush()
+        log.seek(0)
+        return "\n".join(log.read().decode(errors="replace").strip().splitlines()[-lines:])
+
+    try:
+        os.dup2(log.fileno(), 1)
+        yield tail
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+        log.close()
 
 
 def _importer(suffix: str):
@@ -99,7 +130,7 @@ def loaded_objects(path, object_name: str | None = None):
             before = set(bpy.data.objects)
             try:
                 with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0],
-                                               collection=scene.collection):
+                                               collection=scene.collection), quiet_blender_output():
                     result = _importer(suffix)(filepath=str(path))
             except RuntimeError as exc:
                 raise UserError(f"{path}: Blender could not import it: {str(exc).strip().splitlines()[-1]}") from None

@@ -1,0 +1,104 @@
+"""``unipixie features OBJECT --out grid.npz``: render views, extract dense features, lift them to 64³."""
+
+from __future__ import annotations
+
+NAME = "features"
+HELP = "render an object's views, extract dense CLIP features and lift them into the 64³ feature grid"
+EXAMPLES = """  unipixie features chair.glb --out chair_grid.npz --clip-weights ~/models/ViT-B-16/
+  unipixie features scene.blend --object Teapot --out teapot.npz --offline-features --sheet views.png --slices grid.png
+  unipixie features bunny.ply --out bunny.npz --offline-features --engine workbench --views 12 --resolution 160
+  UNIPIXIE_CLIP_WEIGHTS=~/models/open_clip_pytorch_model.bin unipixie features cup.obj --out cup.npz --device cuda"""
+
+
+def add_arguments(p):
+    from . import _common
+
+    p.add_argument("object", type=_common.existing_file, metavar="OBJECT",
+                   help="a .glb/.gltf/.obj/.ply/.stl mesh file or a .blend file (with --object NAME)")
+    p.add_argument("--out", required=True, metavar="NPZ", help="write the feature grid here (compressed .npz)")
+    p.add_argument("--object", dest="object_name", metavar="NAME",
+                   help="the object to use from a .blend file (or one of several objects in a mesh file)")
+    p.add_argument("--views", type=_common.positive_int, default=24, metavar="N", help="number of views (default 24)")
+    p.add_argument("--resolution", type=_common.positive_int, default=224, metavar="PX",
+                   help="square render size in pixels (default 224, the ViT's input)")
+    p.add_argument("--engine", choices=("cycles", "workbench"), default="cycles",
+                   help="renderer: cycles (default; the object's materials as they are) or workbench (fast, "
+                        "studio light)")
+    p.add_argument("--samples", type=_common.positive_int, default=16, metavar="N",
+                   help="Cycles samples per pixel (default 16, adaptive, no denoising)")
+    p.add_argument("--render-device", choices=("auto", "cpu", "gpu"), default="auto",
+                   help="Cycles device (default auto: a GPU when Cycles finds one, else the CPU)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--clip-weights", metavar="PATH",
+                     help="local OpenCLIP ViT-B-16 weights, file or folder (default: $UNIPIXIE_CLIP_WEIGHTS or "
+                          "<cache>/clip/ViT-B-16/)")
+    src.add_argument("--offline-features", action="store_true",
+                     help="use the seeded untrained offline ViT (offline-random-vit-w32, D = 32; NOT CLIP; what the "
+                          "shipped demo model is trained on)")
+    p.add_argument("--device", type=_common.device, default="cpu", help="torch device for features and lifting "
+                                                                        "(cpu, cuda, auto; default cpu)")
+    p.add_argument("--sheet", metavar="PNG", help="also write a contact sheet of the rendered views")
+    p.add_argument("--slices", metavar="PNG", help="also write PCA-coloured slices through the feature grid")
+    p.add_argument("--save-views", metavar="NPZ", help="also write the rendered views (unipixie.views/1)")
+    p.add_argument("--no-cache", action="store_true", help="neither read nor write the caches")
+
+
+def run(args) -> int:
+    import sys
+    from pathlib import Path
+
+    from ..errors import UserError
+    from ..features import FeatureOptions, features_file_job, run_job, save_feature_slices, save_view_sheet
+    from ..progress import Progress
+    from ..types import Views
+
+    out = Path(args.out).expanduser()
+    if out.suffix != ".npz":
+        raise UserError(f"--out {args.out}: the feature grid is written as a .npz file; name it ….npz")
+    for name in ("sheet", "slices"):
+        value = getattr(args, name)
+        if value and not value.lower().endswith(".png"):
+            raise UserError(f"--{name} {value}: pictures are written as PNG; name it ….png")
+    options = FeatureOptions(view_count=args.views, resolution=args.resolution, engine=args.engine,
+                             samples=args.samples, render_device=args.render_device,
+                             offline=args.offline_features, clip_weights=args.clip_weights, device=args.device,
+                             use_cache=not args.no_cache)
+    if not args.offline_features:
+        from ..clip_features import resolve_clip_weights
+
+        resolve_clip_weights(args.clip_weights)          # fail before rendering when the weights are missing
+    try:
+        import bpy  # noqa: F401 - rendering needs Blender
+    except ImportError:
+        raise UserError("rendering needs Blender's Python module 'bpy' (pip install bpy==5.0.1 with Python 3.11), "
+                        "or run inside Blender: blender -b --python-expr \"from unipixie.core.cli import main; "
+                        "main()\" -- features ...") from None
+    with Progress(total=100, description="features") as progress:
+        result = run_job(features_file_job(args.object, args.object_name, options), progress)
+    grid = result.grid
+    out.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(out)
+    views = result.views
+    if (args.sheet or args.save_views) and views is None:
+        if result.views_path is None:
+            raise UserError("the rendered views are not in the cache any more; run again with --no-cache")
+        views = Views.load(result.views_path)
+    if args.sheet:
+        save_view_sheet(views, Path(args.sheet).expanduser())
+    if args.slices:
+        save_feature_slices(grid, Path(args.slices).expanduser())
+    if args.save_views:
+        views.save(Path(args.save_views).expanduser())
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    label = grid.feature_model + ("" if grid.meta.get("is_clip", True) else " (offline random ViT, not CLIP)")
+    print(f"{out}: {int(grid.occupancy.sum())} occupied voxels of {grid.geometry.resolution}³, features "
+          f"{grid.features.shape[0]}×{grid.dim} from {label}; "
+          f"{100 * grid.meta.get('painted_fraction_of_surface', 0):.1f} % of surface voxels seen"
+          + (" (from the cache)" if result.cache_hit else ""))
+    if result.timings and not result.cache_hit:
+        print("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items()))
+    for name, value in (("sheet", args.sheet), ("slices", args.slices), ("views", args.save_views)):
+        if value:
+            print(f"{name}: {value}")
+    return 0
