@@ -42,7 +42,7 @@ from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
-from .errors import CancelledError, UserError
+from .errors import UserError
 from .progress import Progress, silent
 
 # --------------------------------------------------------------------------- constants
@@ -565,13 +565,36 @@ def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional
     sim = api.prepare(options.solver, body, resolved.spec, scenario, options.times(), device=device,
                       settings=settings, progress=progress)
     progress.set_status(f"simulating {options.frames.count} frames")
-    traj = sim.run(options.effects, progress=progress, particle_states=bool(options.particles))
+    traj = sim.run(options.effects, progress=FrameProgress(progress, options.frames.count - 1),
+                   particle_states=bool(options.particles))
     check_trajectory(traj, obj.vertex_count, options.frames.count, obj.name)
     weights = None
     if options.solver == "lbs":
         weights = lbs_vertex_weights(sim, traj, obj)
     return SimulationResult(traj, skinning_weights=weights, material_description=resolved.description,
                             warnings=warnings, seconds=time.perf_counter() - t0)
+
+
+class FrameProgress(Progress):
+    """Forwards a solver's per-frame ``step`` calls to ``parent`` as a fraction of ``frames``.
+
+    Solvers advance their progress once per simulated frame but in different units (one step, or
+    1/(T−1)); counting the calls gives the same fraction for all.  Status text and cancellation are
+    passed through.
+    """
+
+    def __init__(self, parent: Progress, frames: int):
+        super().__init__(total=1.0, description=parent.description, show_bar=False)
+        self.parent = parent
+        self._cancel = parent._cancel
+        self.frames = max(int(frames), 1)
+        self.calls = 0
+
+    def step(self, amount: float = 1.0, status: str | None = None) -> None:
+        if amount > 0:
+            self.calls += 1
+        target = min(self.calls, self.frames) / self.frames * self.parent.total
+        self.parent.step(max(0.0, target - self.parent.done), status)
 
 
 def _merge_settings(source_settings, user_settings):
@@ -1002,7 +1025,11 @@ class BakeJob:
 
 JOB_KEYS = {"scene", "object", "objects", "out", "solver", "alpha", "frames", "effects", "device", "material",
             "output", "interpolation", "particles", "armature_tolerance", "settings", "scenario"}
-SCENARIO_OVERRIDE_KEYS = {"gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box"}
+SCENARIO_OVERRIDE_KEYS = {"gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box", "clamp",
+                          "clamp_group"}
+"""A job's ``scenario`` may set: gravity [x,y,z] m/s²; ground: an object name, ``{"height": z}`` or ``null``
+(no ground); clamp: an object name; clamp_group: a vertex group; pinned_box [[x0,y0,z0],[x1,y1,z1]] m;
+initial_velocity / initial_angular_velocity [x,y,z].  Unset keys come from the scene and the object."""
 
 
 def expand_out(pattern: str, *, scene: str, obj: str, solver: str, alpha: Optional[float],
@@ -1058,8 +1085,6 @@ def group_jobs(jobs: Sequence[BakeJob]) -> list[list[BakeJob]]:
     for j in jobs:
         key = (os.path.abspath(j.scene), os.path.abspath(j.out))
         groups.setdefault(key, []).append(j)
-    for (scene, out), g in groups.items():
-        pass
     outs: dict = {}
     for (scene, out), g in groups.items():
         if out in outs and outs[out] != scene:

@@ -401,9 +401,7 @@ def write_shape_keys(obj, local: np.ndarray, frames: np.ndarray, interpolation: 
         fc = bag.fcurves.new(f'key_blocks["{bpy.utils.escape_identifier(name)}"].value')
         lo, hi = max(t - 1, 0), min(t + 1, T - 1)
         kf = f[lo:hi + 1]
-        vals = (np.arange(lo, hi + 1) == t).astype(np.float32)
-        if t == T - 1:  # hold the final state after the end
-            pass
+        vals = (np.arange(lo, hi + 1) == t).astype(np.float32)  # the last key holds 1 after the end
         _set_keys(fc, kf, vals, interpolation)
     _assign_action(key, action, slot)
     yield 1.0
@@ -688,6 +686,8 @@ class BakeReport:
     notes: list = field(default_factory=list)
     files: list = field(default_factory=list)
     armature_error: Optional[float] = None
+    trajectory: object = field(default=None, repr=False)
+    """The solver's :class:`~unipixie.core.types.Trajectory` (world metres; in memory only, not saved)."""
 
     def summary(self) -> str:
         return (f"baked '{self.object}' with {self.solver} ({self.material}) as {self.mode.replace('_', ' ')}, "
@@ -753,7 +753,7 @@ def write_result(obj, bo: BakeObject, result: SimulationResult, options: BakeOpt
         rep = BakeReport(object=obj.name, solver=options.solver, mode=mode, frames=(int(frames[0]), int(frames[-1])),
                          simulate_seconds=result.seconds, write_seconds=time.perf_counter() - t0,
                          material=result.material_description, notes=notes, files=list(record.files),
-                         armature_error=None if plan is None else plan.max_error)
+                         armature_error=None if plan is None else plan.max_error, trajectory=traj)
         obj[BAKE_RECORD_KEY] = core_bake.make_record(
             **record.to_dict(), mode=mode, solver=options.solver, frames=[int(frames[0]), int(frames[-1])],
             fps=options.fps, alpha=options.alpha, material=result.material_description,
@@ -779,8 +779,6 @@ def bake_steps(obj, options: Optional[BakeOptions] = None, scenario=None, scene=
     bo = read_object(obj, scene)
     options = options or options_from_settings(obj, scene)
     scenario = scenario if scenario is not None else scenario_from_scene(obj, scene)
-    if options.output == "shape_keys" or options.output == "auto":
-        pass
     yield 0.0, "starting"
     run = core_bake.BackgroundRun(lambda progress: core_bake.simulate(bo, scenario, options, progress),
                                   description=f"{options.solver} bake").start()
@@ -862,8 +860,8 @@ def options_for_job(job: BakeJob, obj, scene) -> tuple[BakeOptions, object]:
             raise UserError(f"clamp object '{sc['clamp']}' not found in {job.scene}")
     if isinstance(sc.get("clamp_group"), str):
         clamp_group = sc["clamp_group"]
-    if sc.get("ground", "") is None:
-        use_ground = False
+    if "ground" in sc and not isinstance(sc["ground"], str):
+        use_ground = False  # no ground, or an explicit height set below
     scenario = scenario_from_scene(obj, scene, ground_object=ground_obj, use_ground=use_ground,
                                    clamp_object=clamp_obj, clamp_group=clamp_group)
     numeric = {k: v for k, v in sc.items() if k in ("gravity", "initial_velocity", "initial_angular_velocity", "pinned_box")}
@@ -887,7 +885,6 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
     progress = progress or silent()
     reports: list[BakeReport] = []
     groups = core_bake.group_jobs(jobs)
-    total = max(len(jobs), 1)
     for group in groups:
         scene_path = Path(group[0].scene)
         out = Path(group[0].out)
@@ -905,7 +902,7 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
                     j = BakeJob(**{**job.__dict__, "object": name})
                     options, scenario = options_for_job(j, obj, scene)
                     log(f"baking {j.describe()}")
-                    sub = progress.sub(1.0 / max(len(group), 1) * len(group) / total, 1.0, name)
+                    sub = progress.sub(1.0, 1.0, name)
                     rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
                     for n in rep.notes:
                         log(f"  note: {n}")
