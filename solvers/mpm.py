@@ -1,0 +1,665 @@
+"""The Material Point Method solver (MLS-MPM / APIC, quadratic B-splines) in NVIDIA Warp.
+
+Usage::
+
+    from unipixie.solvers import mpm, effects
+    sim = mpm.prepare(body, material, scenario, frame_times, device="cpu")   # fill, sample, compile
+    base = sim.run([])                                                        # Trajectory
+    drag = sim.run([effects.make("linear_drag", c=0.8)], particle_states=True)
+    many = sim.run_batch([[], [drag_effect], [wind_effect]])                  # one launch per kernel
+
+Set-up (:func:`prepare`: particle filling, material lookup, grid pitch, kernel compilation) is
+done once; every :meth:`MPMSimulation.run` starts from the same initial state, so re-running
+with other effect parameters costs only the stepping.  ``run_batch`` simulates its
+environments together: the particle sets are stacked, each environment gets its own grid
+block, time step and effect parameters, and each kernel is launched once per substep for all
+of them (environments that need fewer substeps in a frame skip the extra launches), so a batch
+returns the same trajectories as separate runs.
+
+Algorithm, units and limits: ``docs/mpm.md``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, fields
+from typing import Optional
+
+import numpy as np
+
+from ..core.errors import SimulationDiverged, UserError
+from ..core.progress import Progress
+from ..core.types import Trajectory
+from . import materials
+from .api import Simulation
+from .body import Body
+from .effects import PhysicsTerms
+from .material_sampling import MaterialSpec, SampledMaterial, sample_material
+from .sampling import fill_mesh
+from .scenario import Scenario
+
+SOLVER_NAME = "mpm"
+ELASTIC_RELEASE_FRACTION = 0.1
+"""Speed a particle may gain from released elastic strain within a chunk, as a fraction of the wave speed."""
+TRANSFER_SCHEME = "MLS-MPM (APIC affine transfer), quadratic B-splines, explicit symplectic Euler"
+
+
+# ------------------------------------------------------------------------------------------ settings
+@dataclass
+class MPMSettings:
+    """Numerical settings of the MPM solver (SI units).
+
+    dx: grid cell size in metres; ``None`` = the body's largest extent / ``cells_across`` for a
+        mesh, or ``particles_per_cell_axis`` × the point spacing for a particle set.
+    cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None).
+    particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
+        particle volume = cell volume / particles per cell.
+    jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
+    seed: random seed of the jitter.
+    cfl: the time step is at most ``cfl · dx / (c + |v|max + |a| Δt_frame)`` with
+        c = sqrt((λ + 2μ)/ρ) the largest elastic (P-)wave speed.
+    viscous_cfl: with material damping η the time step is also at most ``viscous_cfl · ρ dx² / η``.
+    max_dt: a user cap on the time step in seconds (``None`` = no cap).
+    max_substeps_per_frame: a frame needing more substeps than this stops the run as diverged.
+    domain_margin_cells: empty cells kept around the material (plus the distance it can travel in
+        one frame); the grid follows the material each frame.
+    max_grid_nodes: largest grid (nodes per environment) the run may grow to.
+    max_particles: refuse bodies that would need more particles than this.
+    material_sampling: ``"nearest"`` or ``"trilinear"`` lookup of voxel material fields.
+    initial_deformation: optional (3, 3) elastic deformation gradient every particle starts with
+        (the body is given in its deformed shape, e.g. a pre-stretched bar); ``None`` = identity.
+    sort_particles: reorder particles by grid cell every frame (memory locality, less atomic
+        contention on the GPU).
+    """
+
+    dx: Optional[float] = None
+    cells_across: int = 32
+    particles_per_cell_axis: int = 2
+    jitter: float = 0.0
+    seed: int = 0
+    cfl: float = 0.4
+    viscous_cfl: float = 0.1
+    max_dt: Optional[float] = None
+    max_substeps_per_frame: int = 20000
+    domain_margin_cells: int = 4
+    max_grid_nodes: int = 1 << 25
+    max_particles: int = 20_000_000
+    material_sampling: str = "nearest"
+    initial_deformation: Optional[np.ndarray] = None
+    sort_particles: bool = True
+
+    def __post_init__(self):
+        def positive(name, value, integer=False):
+            try:
+                x = int(value) if integer else float(value)
+            except (TypeError, ValueError):
+                raise UserError(f"MPM setting '{name}' must be a number, got {value!r}") from None
+            if not (math.isfinite(x) and x > 0):
+                raise UserError(f"MPM setting '{name}' must be positive, got {value!r}")
+            return x
+
+        if self.dx is not None:
+            self.dx = positive("dx", self.dx)
+        if self.max_dt is not None:
+            self.max_dt = positive("max_dt", self.max_dt)
+        for name in ("cells_across", "particles_per_cell_axis", "max_substeps_per_frame", "max_grid_nodes",
+                     "max_particles"):
+            setattr(self, name, positive(name, getattr(self, name), integer=True))
+        self.cfl = positive("cfl", self.cfl)
+        self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
+        if self.cfl > 1.0:
+            raise UserError(f"MPM setting 'cfl' must be at most 1 (0.3-0.5 is usual), got {self.cfl}")
+        self.domain_margin_cells = int(self.domain_margin_cells)
+        if self.domain_margin_cells < 1:
+            raise UserError("MPM setting 'domain_margin_cells' must be at least 1")
+        self.jitter = float(self.jitter)
+        if not 0.0 <= self.jitter <= 1.0:
+            raise UserError(f"MPM setting 'jitter' must lie in [0, 1], got {self.jitter}")
+        if self.material_sampling not in ("nearest", "trilinear"):
+            raise UserError(f"MPM setting 'material_sampling' must be 'nearest' or 'trilinear', "
+                            f"got {self.material_sampling!r}")
+        if self.initial_deformation is not None:
+            F = np.asarray(self.initial_deformation, dtype=np.float64)
+            if F.shape != (3, 3) or not np.all(np.isfinite(F)) or np.linalg.det(F) <= 0:
+                raise UserError("MPM setting 'initial_deformation' must be a finite 3x3 matrix with positive "
+                                "determinant")
+            self.initial_deformation = F
+
+    @classmethod
+    def from_any(cls, settings) -> "MPMSettings":
+        """``None`` (defaults), an :class:`MPMSettings`, or a dict of its fields."""
+        if settings is None:
+            return cls()
+        if isinstance(settings, cls):
+            return settings
+        if isinstance(settings, dict):
+            known = {f.name for f in fields(cls)}
+            unknown = sorted(set(settings) - known)
+            if unknown:
+                raise UserError(f"unknown MPM setting(s) {unknown}; known: {sorted(known)}")
+            return cls(**settings)
+        raise UserError(f"MPM settings must be a dict or MPMSettings, got {type(settings).__name__}")
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _class_law_table(wp, kernels, device):
+    """One ClassLaw per registry class (ids are array indices)."""
+    laws = []
+    for c in materials.MATERIAL_CLASSES:
+        law = kernels.ClassLaw()
+        law.elastic = materials.ELASTICITY_MODELS.index(c.elasticity)
+        law.plastic = materials.PLASTICITY_MODELS.index(c.plasticity)
+        law.held = int(c.held_fixed)
+        p = dict(c.params)
+        law.yield_stress = float(p.get("yield_stress", math.inf))
+        law.softening = float(p.get("softening", 0.0))
+        phi = math.radians(float(p.get("friction_angle_deg", 0.0)))
+        law.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * math.sin(phi) / (3.0 - math.sin(phi))
+        law.theta_c = float(p.get("theta_c", 0.0))
+        law.theta_s = float(p.get("theta_s", 0.0))
+        law.hardening = float(p.get("hardening", 0.0))
+        law.max_hardening = float(p.get("max_hardening", math.inf))
+        laws.append(law)
+    return wp.array(laws, dtype=kernels.ClassLaw, device=device)
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    """(3,) angular velocity -> (3, 3) matrix with skew(w) @ r = w x r."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _point_volume(points: np.ndarray) -> float:
+    """m³ per point of a particle set, from the median nearest-neighbour distance."""
+    if len(points) < 2:
+        raise UserError("a particle body with a single point needs point_volume")
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=2)
+    spacing = float(np.median(d[:, 1]))
+    if not spacing > 0:
+        raise UserError("the body's points coincide (zero spacing); give point_volume or distinct points")
+    return spacing ** 3
+
+
+@dataclass
+class _Buffers:
+    """Device arrays of one batch size (reused between runs)."""
+
+    envs: int
+    particles: dict
+    spare: dict
+    tracked: dict
+    sort_keys: object
+    sort_values: object
+    lanes: int
+    stats: dict
+    env: dict
+    lost: object
+    grid: dict = field(default_factory=dict)
+    grid_dims: tuple = (0, 0, 0)
+
+
+_PARTICLE_FIELDS = (("x", "vec3"), ("v", "vec3"), ("C", "mat33"), ("F", "mat33"), ("rot", "quat"), ("plastic", "float"),
+                    ("mass", "float"), ("vol", "float"), ("mu", "float"), ("lam", "float"), ("code", "int32"),
+                    ("pid", "int32"))
+
+
+# ------------------------------------------------------------------------------------------ simulation
+class MPMSimulation(Simulation):
+    """A prepared MPM simulation (see the module docstring).
+
+    Attributes (besides :class:`~unipixie.solvers.api.Simulation`'s)
+    ----------
+    settings: :class:`MPMSettings`.
+    dx: grid cell size, m.
+    particle_volume: (P,) m³ rest volume per particle.
+    material: :class:`SampledMaterial` of the P simulated particles (background removed).
+    held: (P,) bool, particles held at rest (clamp box or a held-fixed class).
+    tracked_held: (N,) bool, tracked points held at rest.
+    setup_seconds: wall time of :func:`prepare`.
+    """
+
+    solver = SOLVER_NAME
+
+    def __init__(self, body: Body, scenario: Scenario, frame_times, device: str, settings: MPMSettings):
+        super().__init__(body, scenario, frame_times, device)
+        self.settings = settings
+        self._buffers: Optional[_Buffers] = None
+
+    # ------------------------------------------------------------------ set-up
+    def _setup(self, material: MaterialSpec, progress: Optional[Progress]):
+        s = self.settings
+        body = self.body
+        if progress:
+            progress.set_status("MPM: filling the body with particles")
+        if body.points is not None:
+            points = np.asarray(body.points, dtype=np.float64)
+            volume = float(body.point_volume) if body.point_volume is not None else _point_volume(points)
+            if not (math.isfinite(volume) and volume > 0):
+                raise UserError(f"the body's point_volume must be a positive number of m³, got {body.point_volume!r}")
+            dx = s.dx if s.dx is not None else s.particles_per_cell_axis * volume ** (1.0 / 3.0)
+            volumes = np.full(len(points), volume)
+        else:
+            extent = float(np.max(np.asarray(body.mesh.extents, dtype=np.float64)))
+            dx = s.dx if s.dx is not None else extent / s.cells_across
+            spacing = dx / s.particles_per_cell_axis
+            estimate = float(np.prod(np.ceil(np.asarray(body.mesh.extents) / spacing)))
+            if estimate > 4 * s.max_particles:
+                raise UserError(f"filling the mesh at particle spacing {spacing:.3g} m needs about {estimate:,.0f} "
+                                f"lattice points (settings max_particles = {s.max_particles:,}); use a larger dx or "
+                                "fewer cells_across")
+            points = fill_mesh(body.mesh, spacing, jitter=s.jitter, seed=s.seed)
+            volumes = np.full(len(points), spacing ** 3)
+        if len(points) > s.max_particles:
+            raise UserError(f"the body needs {len(points):,} particles, more than settings max_particles = "
+                            f"{s.max_particles:,}; use a larger dx")
+        if progress:
+            progress.set_status(f"MPM: material at {len(points):,} particles")
+        sampled = sample_material(material, points, mode=s.material_sampling)
+        for name in ("E", "density"):
+            arr = getattr(sampled, name)
+            if not np.all(np.isfinite(arr) & (arr > 0)):
+                raise UserError(f"material {name} must be finite and positive at every particle")
+        if not np.all((sampled.nu > -1.0) & (sampled.nu < 0.5)):
+            raise UserError("material Poisson's ratio must lie in (-1, 0.5) at every particle")
+        bad_ids = np.setdiff1d(np.unique(sampled.material), list(materials.BY_ID))
+        if bad_ids.size:
+            raise UserError(f"unknown material class id(s) {bad_ids.tolist()}; valid ids are 0..{materials.NUM_CLASSES - 1}")
+        simulated = np.array([materials.BY_ID[int(c)].simulated for c in range(materials.NUM_CLASSES)])[sampled.material]
+        if not simulated.any():
+            raise UserError("no simulated material: every particle is 'background'")
+        points, volumes = points[simulated], volumes[simulated]
+        sampled = SampledMaterial(sampled.E[simulated], sampled.nu[simulated], sampled.density[simulated],
+                                  sampled.material[simulated])
+        sc = self.scenario
+        if sc.ground_height is not None:
+            below = int(np.sum(points[:, 2] < sc.ground_height - 1e-6))
+            if below:
+                raise UserError(f"{below} of {len(points)} particles start below the ground plane z = "
+                                f"{sc.ground_height:g} m; move the object up or set the scenario's ground lower/null")
+        held_class = np.array([materials.BY_ID[c].held_fixed for c in range(materials.NUM_CLASSES)])
+        held = sc.pinned_mask(points) | held_class[sampled.material]
+        masses = sampled.density * volumes
+        com = (points * masses[:, None]).sum(0) / masses.sum()
+        v0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], points - com)
+        v0[held] = 0.0
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(points).query(self.tracked_rest)
+        tracked_held = sc.pinned_mask(self.tracked_rest) | held[nearest]
+        tv0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], self.tracked_rest - com)
+        tv0[tracked_held] = 0.0
+
+        self.dx = float(dx)
+        self.sample_positions = points
+        self.particle_volume = volumes
+        self.material = sampled
+        self.held = held
+        self.tracked_held = tracked_held
+        self._masses = masses
+        self._v0 = v0
+        self._tv0 = tv0
+        C0 = _skew(sc.initial_angular_velocity)
+        self._C0 = np.where(held[:, None, None], 0.0, C0[None]).astype(np.float32)
+        F0 = np.eye(3) if s.initial_deformation is None else s.initial_deformation
+        self._F0 = np.where(held[:, None, None], np.eye(3)[None], F0[None]).astype(np.float32)
+        U, _, Vt = np.linalg.svd(F0)
+        R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        from scipy.spatial.transform import Rotation
+
+        self._rot0 = Rotation.from_matrix(R0).as_quat().astype(np.float32)  # (x, y, z, w) as Warp stores quats
+        plastic0 = np.zeros(len(points))
+        snow = np.array([c.plasticity == "snow" for c in materials.MATERIAL_CLASSES])[sampled.material]
+        plastic0[snow] = 1.0  # snow: plastic volume ratio Jp starts at 1
+        self._plastic0 = plastic0
+        self._code = (sampled.material + np.where(held, 16, 0)).astype(np.int32)
+        self._anchor = np.array([0.0, 0.0, sc.ground_height if sc.ground_height is not None else 0.0])
+
+        if progress:
+            progress.set_status("MPM: compiling kernels")
+        from . import mpm_kernels
+        from .warp_runtime import init_warp
+
+        wp = init_warp()
+        self._wp = wp
+        self._k = mpm_kernels
+        wp.load_module(mpm_kernels, device=self.device)
+        self._laws = _class_law_table(wp, mpm_kernels, self.device)
+
+    @property
+    def particle_count(self) -> int:
+        return len(self.sample_positions)
+
+    # ------------------------------------------------------------------ buffers
+    def _buffers_for(self, envs: int) -> _Buffers:
+        if self._buffers is not None and self._buffers.envs == envs:
+            return self._buffers
+        wp, dev = self._wp, self.device
+        n = self.particle_count * envs
+        m = max(len(self.tracked_rest), 1) * envs
+        types = {"vec3": wp.vec3, "mat33": wp.mat33, "quat": wp.quat, "float": float, "int32": wp.int32}
+        particles = {name: wp.zeros(n, dtype=types[t], device=dev) for name, t in _PARTICLE_FIELDS}
+        spare = ({name: wp.zeros(n, dtype=types[t], device=dev) for name, t in _PARTICLE_FIELDS}
+                 if self.settings.sort_particles else {})
+        tracked = {"x": wp.zeros(m, dtype=wp.vec3, device=dev), "v": wp.zeros(m, dtype=wp.vec3, device=dev),
+                   "held": wp.zeros(m, dtype=wp.int32, device=dev)}
+        lanes = int(min(1024, max(self.particle_count, len(self.tracked_rest), 1)))
+        stats = {"lo": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
+                 "hi": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
+                 "stats": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev)}
+        env = {"dt": wp.zeros(envs, dtype=float, device=dev), "steps": wp.zeros(envs, dtype=wp.int32, device=dev),
+               "origin": wp.zeros(envs, dtype=wp.vec3, device=dev), "yield": wp.zeros(envs, dtype=float, device=dev),
+               "eta": wp.zeros(envs, dtype=float, device=dev), "acc": wp.zeros(envs, dtype=wp.vec3, device=dev),
+               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev)}
+        sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
+        sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
+        self._buffers = _Buffers(envs, particles, spare, tracked, sort_keys, sort_values, lanes, stats, env,
+                                 wp.zeros(envs, dtype=wp.int32, device=dev))
+        return self._buffers
+
+    def _ensure_grid(self, buf: _Buffers, dims: tuple) -> None:
+        if all(a >= b for a, b in zip(buf.grid_dims, dims)) and buf.grid:
+            return
+        wp, dev = self._wp, self.device
+        grow = tuple(int(max(a, math.ceil(b * 1.25))) if b > a else int(a) for a, b in zip(buf.grid_dims, dims))
+        nodes = int(np.prod(grow))
+        if nodes > self.settings.max_grid_nodes or nodes * buf.envs >= 2 ** 31:
+            raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
+                            f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
+        total = nodes * buf.envs
+        buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
+                    "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
+        buf.grid_dims = grow
+
+    # ------------------------------------------------------------------ running
+    def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Optional[Progress],
+                   particle_states: bool) -> list[Trajectory]:
+        if not terms_list:
+            return []
+        wp, k, dev, s = self._wp, self._k, self.device, self.settings
+        t_start = time.perf_counter()
+        E = len(terms_list)
+        N = self.particle_count
+        M = len(self.tracked_rest)
+        M_alloc = max(M, 1)
+        buf = self._buffers_for(E)
+        dx = self.dx
+        inv_dx = 1.0 / dx
+        sc = self.scenario
+        has_ground = int(sc.ground_height is not None)
+        ground_z = float(sc.ground_height) if has_ground else 0.0
+
+        # ---- per-environment parameters
+        mu_all = np.empty((E, N))
+        lam_all = np.empty((E, N))
+        acc = np.zeros((E, 3))
+        drag = np.zeros((E, 2))
+        friction = np.zeros(E)
+        yield_stress = np.full(E, np.inf)
+        eta = np.zeros(E)
+        for e, terms in enumerate(terms_list):
+            mu_all[e], lam_all[e] = self.material.lame(terms.E_multiplier(N))
+            acc[e] = sc.gravity + np.asarray(terms.extra_acceleration, dtype=np.float64)
+            drag[e] = (terms.linear_drag, terms.quadratic_drag)
+            friction[e] = terms.friction_mu
+            yield_stress[e] = terms.yield_stress
+            eta[e] = terms.damping_eta
+        acc_norm = np.linalg.norm(acc, axis=1)
+        rho_min = float(self.material.density.min())
+
+        # ---- initial state
+        P = buf.particles
+        P["x"].assign(np.tile(self.sample_positions, (E, 1)).astype(np.float32))
+        P["v"].assign(np.tile(self._v0, (E, 1)).astype(np.float32))
+        P["C"].assign(np.tile(self._C0, (E, 1, 1)))
+        P["F"].assign(np.tile(self._F0, (E, 1, 1)))
+        P["rot"].assign(np.tile(self._rot0, (E * N, 1)))
+        P["plastic"].assign(np.tile(self._plastic0, E).astype(np.float32))
+        P["mass"].assign(np.tile(self._masses, E).astype(np.float32))
+        P["vol"].assign(np.tile(self.particle_volume, E).astype(np.float32))
+        P["mu"].assign(mu_all.reshape(-1).astype(np.float32))
+        P["lam"].assign(lam_all.reshape(-1).astype(np.float32))
+        P["code"].assign(np.tile(self._code, E))
+        P["pid"].assign(np.arange(E * N, dtype=np.int32))
+        T = buf.tracked
+        tracked0 = np.zeros((E * M_alloc, 3), np.float32)
+        tracked_v0 = np.zeros((E * M_alloc, 3), np.float32)
+        tracked_h = np.ones(E * M_alloc, np.int32)
+        if M:
+            tracked0[:] = np.tile(self.tracked_rest, (E, 1))
+            tracked_v0[:] = np.tile(self._tv0, (E, 1))
+            tracked_h[:] = np.tile(self.tracked_held.astype(np.int32), E)
+        T["x"].assign(tracked0)
+        T["v"].assign(tracked_v0)
+        T["held"].assign(tracked_h)
+        Env = buf.env
+        Env["yield"].assign(yield_stress.astype(np.float32))
+        Env["eta"].assign(eta.astype(np.float32))
+        Env["acc"].assign(acc.astype(np.float32))
+        Env["drag"].assign(drag.astype(np.float32))
+        Env["friction"].assign(friction.astype(np.float32))
+        buf.lost.zero_()
+
+        times = self.frame_times
+        F_count = len(times)
+        out_positions = np.zeros((E, F_count, M, 3), np.float32)
+        out_positions[:, 0] = self.tracked_rest[None]
+        states = None
+        if particle_states:
+            states = {"x": np.zeros((F_count, N, 3), np.float32), "v": np.zeros((F_count, N, 3), np.float32),
+                      "J": np.zeros((F_count, N), np.float32), "plastic": np.zeros((F_count, N), np.float32)}
+            scratch = {"x": wp.zeros(N, dtype=wp.vec3, device=dev), "v": wp.zeros(N, dtype=wp.vec3, device=dev),
+                       "J": wp.zeros(N, dtype=float, device=dev), "plastic": wp.zeros(N, dtype=float, device=dev)}
+            self._record_state(buf, scratch, states, 0)
+        dt_log = np.zeros((E, F_count - 1))
+        steps_log = np.zeros((E, F_count - 1), np.int64)
+
+        for f in range(1, F_count):
+            frame_dt = float(times[f] - times[f - 1])
+            lo, hi, vmax, cmax = self._frame_stats(buf, E, N, M, f - 1)
+            # time step per environment
+            dt = s.cfl * dx / (cmax + vmax + acc_norm * frame_dt + 1e-12)
+            visc = eta > 0
+            dt[visc] = np.minimum(dt[visc], s.viscous_cfl * rho_min * dx * dx / eta[visc])
+            if s.max_dt is not None:
+                dt = np.minimum(dt, s.max_dt)
+            steps = np.maximum(1, np.ceil(frame_dt / dt - 1e-9)).astype(np.int64)
+            if steps.max() > s.max_substeps_per_frame:
+                e = int(np.argmax(steps))
+                raise SimulationDiverged(
+                    f"MPM: frame {f} (t = {times[f]:.4g} s) would need {int(steps[e])} substeps "
+                    f"(settings max_substeps_per_frame = {s.max_substeps_per_frame}): particles move at up to "
+                    f"{vmax[e]:.3g} m/s with wave speed {cmax[e]:.3g} m/s on a {dx:.3g} m grid. The simulation is "
+                    "blowing up or the material is very stiff; lower E, raise max_substeps_per_frame, or use a "
+                    "coarser grid (larger dx)")
+            dt = frame_dt / steps
+            dt_log[:, f - 1] = dt
+            steps_log[:, f - 1] = steps
+            Env["dt"].assign(dt.astype(np.float32))
+            Env["steps"].assign(steps.astype(np.int32))
+            # Substeps run in chunks; before each the grid is placed around the material with a margin of
+            # domain_margin_cells + 2 cells, and a chunk is short enough that nothing travels further at the
+            # current top speed plus what body forces and a release of elastic strain (10 % of the wave speed)
+            # can add.  Particles that still leave the grid stop the run (SimulationDiverged).
+            travel_budget = s.domain_margin_cells * dx
+            speed_bound = vmax + acc_norm * frame_dt + ELASTIC_RELEASE_FRACTION * cmax
+            done = 0
+            while done < steps.max():
+                if done > 0:
+                    lo, hi, vmax, cmax = self._frame_stats(buf, E, N, M, f - 1)
+                    speed_bound = vmax + acc_norm * frame_dt + ELASTIC_RELEASE_FRACTION * cmax
+                active = steps > done
+                per_step = speed_bound[active] * dt[active]
+                chunk = int(np.min(np.floor(travel_budget / np.maximum(per_step, 1e-30))))
+                chunk = max(1, min(chunk, int(steps.max()) - done))
+                self._place_grid(buf, lo, hi, f)
+                if s.sort_particles:
+                    self._sort(buf, E, N)
+                self._step_frame(buf, E, N, M_alloc, done, done + chunk, has_ground, ground_z, progress)
+                done += chunk
+            lost = buf.lost.numpy()
+            if lost.any():
+                e = int(np.argmax(lost))
+                raise SimulationDiverged(
+                    f"MPM diverged at frame {f} (t = {times[f]:.4g} s): {int(lost[e])} of {N} particles have NaN/inf "
+                    f"positions or left the grid (it follows the material with a margin of {s.domain_margin_cells} "
+                    f"cells plus one frame of travel). Remedy: a smaller time step (settings max_dt or cfl; the "
+                    f"step was {dt[e]:.3g} s), a lower E, or a finer grid")
+            if M:
+                out_positions[:, f] = T["x"].numpy().reshape(E, M_alloc, 3)[:, :M]
+            if states is not None:
+                self._record_state(buf, scratch, states, f)
+            if progress:
+                progress.step(1.0, f"MPM frame {f}/{F_count - 1}")
+        # last check: NaN in the final state
+        self._frame_stats(buf, E, N, M, F_count - 1)
+        if not np.all(np.isfinite(out_positions)):
+            raise SimulationDiverged("MPM diverged: tracked points have NaN/inf positions; use a smaller time step "
+                                     "(settings max_dt or cfl) or a lower E")
+        wall = time.perf_counter() - t_start
+        out = []
+        for e in range(E):
+            meta = {"dx": self.dx, "particles": N, "particles_per_cell": self.settings.particles_per_cell_axis ** 3,
+                    "transfer": TRANSFER_SCHEME, "device": str(self.device), "environments": E,
+                    "batched": E > 1, "grid_dims": list(buf.grid_dims),
+                    "dt": dt_log[e].tolist(), "substeps": steps_log[e].tolist(),
+                    "dt_min": float(dt_log[e].min()) if F_count > 1 else None,
+                    "dt_max": float(dt_log[e].max()) if F_count > 1 else None,
+                    "substeps_total": int(steps_log[e].sum()), "wall_time_s": wall,
+                    "particle_substeps": int(steps_log[e].sum()) * N}
+            traj = Trajectory(times=times, positions=out_positions[e], solver=self.solver, meta=meta)
+            if states is not None and e == 0:
+                mu, lam = mu_all[0], lam_all[0]
+                traj.particle_positions = states["x"]
+                traj.particle_attributes = {
+                    "velocity": states["v"], "volume_ratio": states["J"], "plastic_state": states["plastic"],
+                    "E": (mu * (3 * lam + 2 * mu) / (lam + mu)).astype(np.float32),
+                    "nu": self.material.nu.astype(np.float32), "density": self.material.density.astype(np.float32),
+                    "material": self.material.material.astype(np.int32), "held": self.held.astype(np.int8)}
+            out.append(traj)
+        return out
+
+    # ------------------------------------------------------------------ pieces of a run
+    def _frame_stats(self, buf: _Buffers, E: int, N: int, M: int, frame: int):
+        """Per environment: (E, 3) lower and upper bounds, (E,) max speed and max wave speed; raises on NaN."""
+        wp, k = self._wp, self._k
+        P, st = buf.particles, buf.stats
+        wp.launch(k.frame_stats, dim=E * buf.lanes, device=self.device,
+                  inputs=[P["x"], P["v"], P["mass"], P["vol"], P["mu"], P["lam"], P["plastic"], P["code"], self._laws,
+                          buf.tracked["x"], N, max(M, 1) if M else 0, buf.lanes],
+                  outputs=[st["lo"], st["hi"], st["stats"]])
+        lo = st["lo"].numpy().reshape(E, buf.lanes, 3).min(1).astype(np.float64)
+        hi = st["hi"].numpy().reshape(E, buf.lanes, 3).max(1).astype(np.float64)
+        stats = st["stats"].numpy().reshape(E, buf.lanes, 3)
+        bad = stats[:, :, 2].sum(1)
+        if bad.any():
+            e = int(np.argmax(bad))
+            t = self.frame_times[frame]
+            raise SimulationDiverged(
+                f"MPM diverged at frame {frame} (t = {t:.4g} s): {int(bad[e])} of {N} particles/tracked points have "
+                f"NaN/inf positions or velocities. Remedy: a smaller time step (settings max_dt or cfl), a lower E, "
+                "or a finer grid")
+        vmax = np.sqrt(stats[:, :, 0].max(1)).astype(np.float64)
+        cmax = np.sqrt(stats[:, :, 1].max(1)).astype(np.float64)
+        return lo, hi, vmax, cmax
+
+    def _sort(self, buf: _Buffers, E: int, N: int) -> None:
+        wp, k = self._wp, self._k
+        P, S = buf.particles, buf.spare
+        n = E * N
+        dims = wp.vec3i(*buf.grid_dims)
+        nodes = int(np.prod(buf.grid_dims))
+        wp.launch(k.cell_keys, dim=n, device=self.device,
+                  inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
+                  outputs=[buf.sort_keys, buf.sort_values])
+        wp.utils.radix_sort_pairs(buf.sort_keys, buf.sort_values, n)
+        names = [name for name, _ in _PARTICLE_FIELDS]
+        wp.launch(k.gather_particles, dim=n, device=self.device,
+                  inputs=[buf.sort_values] + [P[a] for a in names] + [S[a] for a in names])
+        buf.particles, buf.spare = S, P
+
+    def _place_grid(self, buf: _Buffers, lo: np.ndarray, hi: np.ndarray, frame: int) -> None:
+        """Size the grid and set each environment's origin around its material's (E, 3) bounds."""
+        s, dx = self.settings, self.dx
+        margin = (s.domain_margin_cells + 2) * dx
+        cell_lo = np.floor((lo - margin - self._anchor) / dx).astype(np.int64)
+        cell_hi = np.ceil((hi + margin - self._anchor) / dx).astype(np.int64)
+        need = cell_hi - cell_lo + 1
+        try:
+            self._ensure_grid(buf, tuple(int(a) for a in need.max(0)))
+        except UserError as exc:
+            t = self.frame_times[frame]
+            raise SimulationDiverged(
+                f"MPM: at frame {frame} (t = {t:.4g} s) the material spread too far: {exc}. The simulation is "
+                "blowing up or the material (fluid, sand) spreads widely; lower the time step (settings max_dt / "
+                "cfl), lower E, or raise max_grid_nodes / use a larger dx") from None
+        dims = np.array(buf.grid_dims, np.int64)
+        origin_cell = cell_lo - (dims[None] - need) // 2
+        buf.env["origin"].assign((self._anchor[None] + origin_cell * dx).astype(np.float32))
+
+    def _step_frame(self, buf: _Buffers, E: int, N: int, M_alloc: int, first: int, stop: int, has_ground: int,
+                    ground_z: float, progress: Optional[Progress]) -> None:
+        wp, k, dev = self._wp, self._k, self.device
+        P, T, G, Env = buf.particles, buf.tracked, buf.grid, buf.env
+        dims = wp.vec3i(*buf.grid_dims)
+        nodes = int(np.prod(buf.grid_dims))
+        dx = self.dx
+        inv_dx = 1.0 / dx
+        n = E * N
+        p2g = wp.launch(k.p2g, dim=n, device=dev, record_cmd=True,
+                        inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"], P["vol"], P["mu"],
+                                P["lam"], P["code"], self._laws, Env["dt"], Env["steps"], Env["yield"], Env["eta"], Env["origin"],
+                                N, nodes, dims, dx, inv_dx, 0],
+                        outputs=[G["mv"], G["held"], buf.lost])
+        grid = wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True,
+                         inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"], Env["drag"], Env["friction"],
+                                 Env["origin"], nodes, dims, dx, has_ground, ground_z, 0],
+                         outputs=[G["v"]])
+        g2p = wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True,
+                        inputs=[P["x"], P["v"], P["C"], P["code"], T["x"], T["v"], T["held"], G["v"], Env["dt"],
+                                Env["steps"], Env["origin"], N, n, M_alloc, nodes, dims, dx, inv_dx, has_ground,
+                                ground_z, 0])
+        for step in range(first, stop):
+            for cmd in (p2g, grid, g2p):
+                cmd.set_param_by_name("substep", step)
+                cmd.launch()
+            if progress is not None and step % 256 == 255:
+                progress.check()
+
+    def _record_state(self, buf: _Buffers, scratch: dict, states: dict, frame: int) -> None:
+        wp, k = self._wp, self._k
+        P = buf.particles
+        N = self.particle_count
+        wp.launch(k.scatter_state, dim=buf.envs * N, device=self.device,
+                  inputs=[P["pid"], P["x"], P["v"], P["F"], P["plastic"], N],
+                  outputs=[scratch["x"], scratch["v"], scratch["J"], scratch["plastic"]])
+        for key in states:
+            states[key][frame] = scratch[key].numpy()
+
+
+# ------------------------------------------------------------------------------------------ entry point
+def prepare(body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
+            settings=None, progress: Optional[Progress] = None) -> MPMSimulation:
+    """Prepare an MPM simulation: particles, material per particle, grid pitch, compiled kernels.
+
+    body: :class:`~unipixie.solvers.body.Body` (closed mesh, filled with particles, or a particle set).
+    material: homogeneous, per-point or voxel-field material (:mod:`~unipixie.solvers.material_sampling`).
+    scenario: gravity, ground, clamp box, initial velocities.
+    frame_times: (T,) seconds; the trajectory is reported at these instants (``frame_times[0]`` = rest).
+    device: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"``.
+    settings: :class:`MPMSettings`, a dict of its fields, or ``None``.
+    progress: receives status text during set-up; ``run`` advances it one step per frame.
+    """
+    from .warp_runtime import resolve_device
+
+    if not isinstance(body, Body):
+        raise UserError(f"prepare() needs a Body, got {type(body).__name__}")
+    if not isinstance(scenario, Scenario):
+        raise UserError(f"prepare() needs a Scenario, got {type(scenario).__name__}")
+    t0 = time.perf_counter()
+    s = MPMSettings.from_any(settings)
+    sim = MPMSimulation(body, scenario, frame_times, resolve_device(device), s)
+    sim._setup(material, progress)
+    sim.setup_seconds = time.perf_counter() - t0
+    return sim

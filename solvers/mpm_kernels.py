@@ -1,0 +1,583 @@
+"""Warp kernels of the MPM solver: MLS-MPM with quadratic B-splines, batched over environments.
+
+Layout (all float32, structure of arrays):
+
+* particles: ``E`` environments × ``N`` particles, environment-major (particle ``p`` belongs to
+  environment ``p // N``); positions ``x`` (m), velocities ``v`` (m/s), APIC affine velocity
+  ``C`` (1/s, the velocity gradient estimate), elastic deformation gradient ``F``, one plastic
+  state scalar, mass (kg), rest volume (m³), Lamé ``mu``/``lam`` (Pa) and a ``code``
+  (material-class id + 16 × held flag).
+* grid: every environment owns a block of ``nx·ny·nz`` nodes (x-major, z fastest) whose world
+  origin moves with the material (``env_origin``); nodes lie on one global lattice of pitch
+  ``dx``, so moving the block changes nothing physical.
+* tracked points: ``E`` × ``M`` massless points advected by the grid velocity.
+
+One substep is three launches: :func:`p2g` (deformation update, return mapping, stress and the
+scatter of mass and momentum, fused), :func:`grid_update` (forces, drag, boundary conditions;
+clears the accumulators for the next substep) and :func:`g2p` (gather, advection; also moves
+the tracked points).  Environments whose frame needs fewer substeps than the launch count skip
+the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
+separate runs.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from . import materials
+
+wp.set_module_options({"enable_backward": False})
+
+# Constitutive-law codes: positions in the material registry's tuples (one definition).
+LAW_FIXED_COROTATED = wp.constant(materials.ELASTICITY_MODELS.index("fixed_corotated"))
+LAW_STVK_HENCKY = wp.constant(materials.ELASTICITY_MODELS.index("stvk_hencky"))
+LAW_WEAKLY_COMPRESSIBLE = wp.constant(materials.ELASTICITY_MODELS.index("weakly_compressible"))
+PLASTIC_NONE = wp.constant(materials.PLASTICITY_MODELS.index("none"))
+PLASTIC_VON_MISES = wp.constant(materials.PLASTICITY_MODELS.index("von_mises"))
+PLASTIC_DRUCKER_PRAGER = wp.constant(materials.PLASTICITY_MODELS.index("drucker_prager"))
+PLASTIC_SNOW = wp.constant(materials.PLASTICITY_MODELS.index("snow"))
+
+HELD_FLAG = wp.constant(16)
+"""``code = class_id + HELD_FLAG`` marks a particle held at its rest position."""
+
+MIN_SINGULAR_VALUE = wp.constant(1.0e-4)
+"""Lower clamp of singular values before taking logarithms (Hencky strain of inverted cells)."""
+
+MIN_FLUID_J = wp.constant(1.0e-2)
+"""Lower clamp of the fluid's volume ratio J (keeps the pressure law finite under extreme compression)."""
+
+HELD_MASS_FRACTION = wp.constant(0.5)
+"""A grid node is fixed when at least this fraction of its mass comes from held particles."""
+
+GROUND_TOLERANCE_CELLS = wp.constant(0.01)
+"""Nodes up to this many cells above the ground plane count as on the ground (float32 round-off)."""
+
+TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
+"""Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
+
+ROTATION_ITERATIONS = 1
+"""Warm-started rotation-extraction iterations per substep (fast path of the fixed-corotated law)."""
+
+
+@wp.struct
+class ClassLaw:
+    """Constitutive and plastic model of one material class (built from the registry)."""
+
+    elastic: int
+    plastic: int
+    held: int
+    yield_stress: float  # Pa, inf when the class has no yield of its own
+    softening: float  # yield multiplier exp(-softening * equivalent plastic strain)
+    dp_alpha: float  # Drucker-Prager cone coefficient sqrt(2/3) * 2 sin(phi) / (3 - sin(phi))
+    theta_c: float
+    theta_s: float
+    hardening: float
+    max_hardening: float
+
+
+# ------------------------------------------------------------------------------ constitutive laws
+@wp.func
+def kirchhoff_fixed_corotated(F: wp.mat33, U: wp.mat33, sig: wp.vec3, V: wp.mat33, mu: float, lam: float):
+    """Kirchhoff stress τ = 2μ (F − R) Fᵀ + λ J (J − 1) I of the fixed-corotated model, Pa."""
+    J = sig[0] * sig[1] * sig[2]
+    R = U @ wp.transpose(V)
+    return 2.0 * mu * (F - R) @ wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
+
+
+@wp.func
+def rotation_part(A: wp.mat33, q0: wp.quat):
+    """Rotation R of the polar decomposition A = R S, as a unit quaternion, refined from the guess ``q0``.
+
+    Newton iteration on the rotation: with A' = Rᵀ A = Q S and Q ≈ I + [θ]×, the skew part of A'
+    gives axial(A' − A'ᵀ) = (tr(S) I − S) θ with S = sym(A'); solve for θ and set R ← R rot(θ),
+    where rot(θ) is the rotation of the quaternion (θ/2, 1) normalised (no trigonometric functions;
+    its angle agrees with |θ| to third order).  Converges quadratically, so warm-started with the
+    previous substep's rotation ``ROTATION_ITERATIONS`` iterations reach float32 round-off.  When
+    tr(S) I − S is near-singular (cells close to inversion) the step falls back to θ = axial / tr(S)
+    (Müller et al. 2016's rotation-extraction step), which converges to the rotation maximising
+    tr(Rᵀ A): the sign-corrected SVD's U Vᵀ the fixed-corotated model needs for inverted cells.
+    """
+    q = q0
+    for _it in range(ROTATION_ITERATIONS):
+        Ap = wp.transpose(wp.quat_to_matrix(q)) @ A
+        b = wp.vec3(Ap[2, 1] - Ap[1, 2], Ap[0, 2] - Ap[2, 0], Ap[1, 0] - Ap[0, 1])
+        S = 0.5 * (Ap + wp.transpose(Ap))
+        tr = S[0, 0] + S[1, 1] + S[2, 2]
+        M = wp.identity(n=3, dtype=float) * tr - S
+        detM = wp.determinant(M)
+        theta = b / (wp.abs(tr) + 1.0e-20)
+        if wp.abs(detM) > 1.0e-3 * wp.abs(tr * tr * tr):
+            theta = wp.inverse(M) @ b
+        half = 0.5 * theta
+        q = wp.normalize(wp.mul(q, wp.quat(half[0], half[1], half[2], 1.0)))
+    return q
+
+
+@wp.func
+def hencky_strain(sig: wp.vec3):
+    return wp.vec3(wp.log(wp.max(sig[0], MIN_SINGULAR_VALUE)), wp.log(wp.max(sig[1], MIN_SINGULAR_VALUE)),
+                   wp.log(wp.max(sig[2], MIN_SINGULAR_VALUE)))
+
+
+@wp.func
+def kirchhoff_hencky(U: wp.mat33, sig: wp.vec3, mu: float, lam: float):
+    """Kirchhoff stress τ = U (2μ ε + λ tr(ε) I) Uᵀ of StVK on the Hencky strain ε = log Σ, Pa."""
+    eps = hencky_strain(sig)
+    tr = eps[0] + eps[1] + eps[2]
+    t = 2.0 * mu * eps + wp.vec3(lam * tr)
+    return U @ wp.diag(t) @ wp.transpose(U)
+
+
+@wp.func
+def von_mises_return(sig: wp.vec3, mu: float, yield_stress: float):
+    """Project singular values onto the von Mises yield surface of the Hencky model.
+
+    Returns (new singular values, plastic multiplier Δγ) packed as vec4; Δγ = 0 inside the surface.
+    """
+    eps = hencky_strain(sig)
+    mean = (eps[0] + eps[1] + eps[2]) / 3.0
+    dev = eps - wp.vec3(mean)
+    norm = wp.length(dev)
+    excess = 2.0 * mu * norm - wp.sqrt(2.0 / 3.0) * yield_stress
+    if excess > 0.0 and norm > 1.0e-12:
+        dgamma = excess / (2.0 * mu)
+        eps_new = dev * (1.0 - dgamma / norm) + wp.vec3(mean)
+        return wp.vec4(wp.exp(eps_new[0]), wp.exp(eps_new[1]), wp.exp(eps_new[2]), dgamma)
+    return wp.vec4(sig[0], sig[1], sig[2], 0.0)
+
+
+@wp.func
+def drucker_prager_return(sig: wp.vec3, mu: float, lam: float, alpha: float):
+    """Cohesionless Drucker–Prager return mapping on the Hencky strain (Klár et al. 2016).
+
+    Returns (new singular values, 1 if the state was projected else 0) as vec4.
+    """
+    eps = hencky_strain(sig)
+    tr = eps[0] + eps[1] + eps[2]
+    if tr >= 0.0:  # extension: a cohesionless material carries no tension, back to the cone's tip
+        return wp.vec4(1.0, 1.0, 1.0, 1.0)
+    dev = eps - wp.vec3(tr / 3.0)
+    norm = wp.length(dev)
+    dgamma = norm + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+    if dgamma <= 0.0 or norm <= 1.0e-12:
+        return wp.vec4(sig[0], sig[1], sig[2], 0.0)
+    eps_new = eps - dev * (dgamma / norm)
+    return wp.vec4(wp.exp(eps_new[0]), wp.exp(eps_new[1]), wp.exp(eps_new[2]), 1.0)
+
+
+@wp.func
+def bspline_weights(fx: wp.vec3):
+    """Quadratic B-spline weights of the 3 nodes per axis (rows: node offset 0, 1, 2; columns: axis)."""
+    w0 = wp.vec3(0.5 * (1.5 - fx[0]) * (1.5 - fx[0]), 0.5 * (1.5 - fx[1]) * (1.5 - fx[1]),
+                 0.5 * (1.5 - fx[2]) * (1.5 - fx[2]))
+    w1 = wp.vec3(0.75 - (fx[0] - 1.0) * (fx[0] - 1.0), 0.75 - (fx[1] - 1.0) * (fx[1] - 1.0),
+                 0.75 - (fx[2] - 1.0) * (fx[2] - 1.0))
+    w2 = wp.vec3(0.5 * (fx[0] - 0.5) * (fx[0] - 0.5), 0.5 * (fx[1] - 0.5) * (fx[1] - 0.5),
+                 0.5 * (fx[2] - 0.5) * (fx[2] - 0.5))
+    return wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
+
+
+@wp.func
+def stencil_base(xp: wp.vec3, origin: wp.vec3, inv_dx: float):
+    """Lower corner (node indices) of the 3×3×3 stencil of a point, as float vector."""
+    g = (xp - origin) * inv_dx
+    return wp.vec3(wp.floor(g[0] - 0.5), wp.floor(g[1] - 0.5), wp.floor(g[2] - 0.5))
+
+
+@wp.func
+def stencil_inside(base: wp.vec3, dims: wp.vec3i):
+    return (base[0] >= 0.0 and base[1] >= 0.0 and base[2] >= 0.0 and base[0] <= float(dims[0] - 3)
+            and base[1] <= float(dims[1] - 3) and base[2] <= float(dims[2] - 3))
+
+
+# ------------------------------------------------------------------------------ substep kernels
+@wp.kernel
+def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+        F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+        mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
+        lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
+        env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
+        n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, substep: int,
+        grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
+    """Deformation update, plasticity, stress and the fused scatter of mass and momentum."""
+    p = wp.tid()
+    env = p / n_per_env
+    if substep >= env_steps[env]:
+        return
+    dt = env_dt[env]
+    xp = x[p]
+    if not wp.isfinite(xp):
+        wp.atomic_add(lost, env, 1)
+        return
+    origin = env_origin[env]
+    base = stencil_base(xp, origin, inv_dx)
+    if not stencil_inside(base, dims):
+        wp.atomic_add(lost, env, 1)
+        return
+
+    c = code[p]
+    held = c >= HELD_FLAG
+    m = mass[p]
+    Cp = C[p]
+    tau = wp.mat33(0.0)
+    if not held:
+        law = laws[c % HELD_FLAG]
+        mu = mu_p[p]
+        lam = lam_p[p]
+        Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
+        state = plastic[p]
+        J = float(1.0)
+        ys = wp.min(law.yield_stress, env_yield[env]) * wp.exp(-law.softening * state)
+        if law.elastic == LAW_FIXED_COROTATED and law.plastic == PLASTIC_NONE and ys >= 1.0e30:
+            # purely elastic fixed-corotated (the base model): polar rotation without an SVD
+            q = rotation_part(Fn, rot[p])
+            rot[p] = q
+            R = wp.quat_to_matrix(q)
+            J = wp.determinant(Fn)
+            tau = 2.0 * mu * (Fn - R) @ wp.transpose(Fn) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
+        elif law.elastic == LAW_WEAKLY_COMPRESSIBLE:
+            J = wp.max(wp.determinant(Fn), MIN_FLUID_J)
+            Fn = wp.identity(n=3, dtype=float) * wp.pow(J, 1.0 / 3.0)  # forget shear: a fluid
+            bulk = lam + 2.0 / 3.0 * mu
+            tau = wp.identity(n=3, dtype=float) * (bulk * J * (J - 1.0))
+        else:
+            U = wp.mat33()
+            sig = wp.vec3()
+            V = wp.mat33()
+            wp.svd3(Fn, U, sig, V)
+            projected = bool(False)
+            if law.plastic == PLASTIC_SNOW:
+                clamped = wp.vec3(wp.clamp(sig[0], 1.0 - law.theta_c, 1.0 + law.theta_s),
+                                  wp.clamp(sig[1], 1.0 - law.theta_c, 1.0 + law.theta_s),
+                                  wp.clamp(sig[2], 1.0 - law.theta_c, 1.0 + law.theta_s))
+                state = state * (sig[0] * sig[1] * sig[2]) / (clamped[0] * clamped[1] * clamped[2])
+                sig = clamped
+                projected = True
+                harden = wp.min(wp.exp(law.hardening * (1.0 - state)), law.max_hardening)
+                mu = mu * harden
+                lam = lam * harden
+            elif law.plastic == PLASTIC_DRUCKER_PRAGER:
+                r = drucker_prager_return(sig, mu, lam, law.dp_alpha)
+                if r[3] > 0.0:
+                    sig = wp.vec3(r[0], r[1], r[2])
+                    projected = True
+            elif law.plastic == PLASTIC_VON_MISES or law.plastic == PLASTIC_NONE:
+                # the class's own yield (metal, plasticine) or the plasticity effect on an elastic class
+                if ys < 1.0e30:
+                    r = von_mises_return(sig, mu, ys)
+                    if r[3] > 0.0:
+                        sig = wp.vec3(r[0], r[1], r[2])
+                        state = state + wp.sqrt(2.0 / 3.0) * r[3]
+                        projected = True
+            if projected:
+                Fn = U @ wp.diag(sig) @ wp.transpose(V)
+            J = sig[0] * sig[1] * sig[2]
+            if law.elastic == LAW_FIXED_COROTATED:
+                tau = kirchhoff_fixed_corotated(Fn, U, sig, V, mu, lam)
+            else:
+                tau = kirchhoff_hencky(U, sig, mu, lam)
+        eta = env_eta[env]
+        if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
+            tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
+        F[p] = Fn
+        plastic[p] = state
+
+    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
+    fx = (xp - origin) * inv_dx - base
+    w = bspline_weights(fx)
+    # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
+    # so it is a0 + i a_x + j a_y + k a_z with the columns a_* of affine * dx: built up incrementally.
+    cols = wp.transpose(affine * dx)
+    a0 = m * v[p] - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+    ib = int(base[0])
+    jb = int(base[1])
+    kb = int(base[2])
+    block = env * nodes_per_env
+    for i in range(3):
+        ai = a0 + float(i) * cols[0]
+        wi = w[i, 0]
+        for j in range(3):
+            aij = ai + float(j) * cols[1]
+            wij = wi * w[j, 1]
+            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+            for k in range(3):
+                weight = wij * w[k, 2]
+                mom = weight * (aij + float(k) * cols[2])
+                wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
+                if held:
+                    wp.atomic_add(grid_held, row + k, weight * m)
+
+
+@wp.kernel
+def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
+                env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
+                env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
+                env_friction: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
+                nodes_per_env: int, dims: wp.vec3i, dx: float, has_ground: int, ground_z: float, substep: int,
+                grid_v: wp.array(dtype=wp.vec4)):
+    """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, ground contact.
+
+    Writes (velocity, mass) to ``grid_v`` and clears the accumulators for the next substep.
+    """
+    n = wp.tid()
+    env = n / nodes_per_env
+    if substep >= env_steps[env]:
+        return
+    mv = grid_mv[n]
+    m = mv[3]
+    if m <= 0.0:
+        grid_v[n] = wp.vec4(0.0)
+        return
+    dt = env_dt[env]
+    vel = wp.vec3(mv[0], mv[1], mv[2]) / m + dt * env_acc[env]
+    drag = env_drag[env]
+    if drag[0] > 0.0:  # linear drag -c v, integrated exactly
+        vel = vel * wp.exp(-drag[0] * dt)
+    if drag[1] > 0.0:  # quadratic drag -k |v| v, implicit in |v| (unconditionally stable)
+        vel = vel / (1.0 + drag[1] * wp.length(vel) * dt)
+    if grid_held[n] >= HELD_MASS_FRACTION * m:
+        vel = wp.vec3(0.0)
+    elif has_ground != 0:
+        local = n - env * nodes_per_env
+        k = local % dims[2]
+        z = env_origin[env][2] + float(k) * dx
+        if z <= ground_z + GROUND_TOLERANCE_CELLS * dx and vel[2] < 0.0:
+            # separating contact: remove the approaching normal velocity; Coulomb friction on the rest
+            vn = -vel[2]
+            vt = wp.vec3(vel[0], vel[1], 0.0)
+            speed = wp.length(vt)
+            mu = env_friction[env]
+            if speed <= mu * vn:
+                vt = wp.vec3(0.0)
+            elif speed > 0.0:
+                vt = vt * (1.0 - mu * vn / speed)
+            vel = vt
+    grid_v[n] = wp.vec4(vel[0], vel[1], vel[2], m)
+    grid_mv[n] = wp.vec4(0.0)
+    grid_held[n] = 0.0
+
+
+@wp.kernel
+def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+        code: wp.array(dtype=wp.int32), tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
+        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
+        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
+        inv_dx: float, has_ground: int, ground_z: float, substep: int):
+    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+
+    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
+    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
+    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
+    """
+    tid = wp.tid()
+    particle = tid < n_particles
+    env = int(0)
+    xp = wp.vec3()
+    if particle:
+        env = tid / n_per_env
+        if substep >= env_steps[env]:
+            return
+        if code[tid] >= HELD_FLAG:
+            v[tid] = wp.vec3(0.0)
+            C[tid] = wp.mat33(0.0)
+            return
+        xp = x[tid]
+    else:
+        t = tid - n_particles
+        env = t / m_per_env
+        if substep >= env_steps[env]:
+            return
+        if t_held[t] != 0:
+            return
+        xp = tx[t]
+    if not wp.isfinite(xp):
+        return
+    origin = env_origin[env]
+    base = stencil_base(xp, origin, inv_dx)
+    if not stencil_inside(base, dims):
+        return
+    dt = env_dt[env]
+    fx = (xp - origin) * inv_dx - base
+    w = bspline_weights(fx)
+    ib = int(base[0])
+    jb = int(base[1])
+    kb = int(base[2])
+    block = env * nodes_per_env
+    vel = wp.vec3(0.0)
+    if particle:
+        # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
+        bi = wp.vec3(0.0)
+        bj = wp.vec3(0.0)
+        bk = wp.vec3(0.0)
+        for i in range(3):
+            for j in range(3):
+                wij = w[i, 0] * w[j, 1]
+                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                for k in range(3):
+                    gv = grid_v[row + k]
+                    wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
+                    vel = vel + wv
+                    bi = bi + float(i) * wv
+                    bj = bj + float(j) * wv
+                    bk = bk + float(k) * wv
+        B = (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx)) * dx
+        xn = xp + dt * vel
+        if has_ground != 0 and xn[2] < ground_z:
+            xn = wp.vec3(xn[0], xn[1], ground_z)
+        x[tid] = xn
+        v[tid] = vel
+        C[tid] = (4.0 * inv_dx * inv_dx) * B
+        return
+    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
+    W = float(0.0)
+    sd = wp.vec3(0.0)
+    sv = wp.vec3(0.0)
+    Mdd = wp.mat33(0.0)
+    Mvd = wp.mat33(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                node = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + (kb + k)
+                gv = grid_v[node]
+                vi = wp.vec3(gv[0], gv[1], gv[2])
+                wm = weight * gv[3]
+                W = W + wm
+                sd = sd + wm * dpos
+                sv = sv + wm * vi
+                Mdd = Mdd + wm * wp.outer(dpos, dpos)
+                Mvd = Mvd + wm * wp.outer(vi, dpos)
+    t = tid - n_particles
+    vt = tv[t]
+    if W > 0.0:
+        dbar = sd / W
+        vbar = sv / W
+        cov = Mdd - W * wp.outer(dbar, dbar) + wp.identity(n=3, dtype=float) * (
+            TRACKED_FIT_REGULARISATION * W * dx * dx)
+        grad = (Mvd - W * wp.outer(vbar, dbar)) @ wp.inverse(cov)
+        vt = vbar - grad @ dbar  # the fitted field at the tracked point (offset 0)
+    xn = xp + dt * vt
+    if has_ground != 0 and xn[2] < ground_z:
+        xn = wp.vec3(xn[0], xn[1], ground_z)
+    tx[t] = xn
+    tv[t] = vt
+
+
+# ------------------------------------------------------------------------------ per-frame kernels
+@wp.kernel
+def frame_stats(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
+                vol: wp.array(dtype=float), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
+                plastic: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+                tx: wp.array(dtype=wp.vec3), n_per_env: int, m_per_env: int, lanes: int,
+                out_lo: wp.array(dtype=wp.vec3), out_hi: wp.array(dtype=wp.vec3), out_stats: wp.array(dtype=wp.vec3)):
+    """Per-lane partial reductions: bounds of particles and tracked points, max speed², max wave speed², bad count.
+
+    Lane ``l`` of environment ``e`` (thread ``e * lanes + l``) visits particles ``l, l + lanes, ...``
+    (coalesced); the host finishes the reduction over lanes.
+    """
+    tid = wp.tid()
+    env = tid / lanes
+    lane = tid - env * lanes
+    big = float(3.0e38)
+    lo = wp.vec3(big)
+    hi = wp.vec3(-big)
+    vmax2 = float(0.0)
+    c2max = float(0.0)
+    bad = float(0.0)
+    i = lane
+    while i < n_per_env:
+        p = env * n_per_env + i
+        xp = x[p]
+        vp = v[p]
+        if wp.isfinite(xp) and wp.isfinite(vp):
+            lo = wp.min(lo, xp)
+            hi = wp.max(hi, xp)
+            vmax2 = wp.max(vmax2, wp.dot(vp, vp))
+            c = code[p]
+            if c < HELD_FLAG:
+                law = laws[c]
+                modulus = lam_p[p] + 2.0 * mu_p[p]
+                if law.elastic == LAW_WEAKLY_COMPRESSIBLE:
+                    modulus = lam_p[p] + 2.0 / 3.0 * mu_p[p]
+                if law.plastic == PLASTIC_SNOW:
+                    modulus = modulus * wp.min(wp.exp(law.hardening * (1.0 - plastic[p])), law.max_hardening)
+                c2max = wp.max(c2max, modulus * vol[p] / mass[p])
+        else:
+            bad = bad + 1.0
+        i = i + lanes
+    i = lane
+    while i < m_per_env:
+        xt = tx[env * m_per_env + i]
+        if wp.isfinite(xt):
+            lo = wp.min(lo, xt)
+            hi = wp.max(hi, xt)
+        else:
+            bad = bad + 1.0
+        i = i + lanes
+    out_lo[tid] = lo
+    out_hi[tid] = hi
+    out_stats[tid] = wp.vec3(vmax2, c2max, bad)
+
+
+@wp.kernel
+def cell_keys(x: wp.array(dtype=wp.vec3), env_origin: wp.array(dtype=wp.vec3), n_per_env: int, nodes_per_env: int,
+              dims: wp.vec3i, inv_dx: float, keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32)):
+    """Sort keys: the node index of each particle's stencil centre (environment blocks in order)."""
+    p = wp.tid()
+    env = p / n_per_env
+    xp = x[p]
+    key = env * nodes_per_env
+    if wp.isfinite(xp):
+        b = stencil_base(xp, env_origin[env], inv_dx)
+        i = wp.clamp(int(b[0]) + 1, 0, dims[0] - 1)
+        j = wp.clamp(int(b[1]) + 1, 0, dims[1] - 1)
+        k = wp.clamp(int(b[2]) + 1, 0, dims[2] - 1)
+        key = key + (i * dims[1] + j) * dims[2] + k
+    keys[p] = key
+    values[p] = p
+
+
+@wp.kernel
+def gather_particles(order: wp.array(dtype=wp.int32),
+                     x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+                     F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+                     mass: wp.array(dtype=float),
+                     vol: wp.array(dtype=float), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
+                     code: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32),
+                     x2: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), C2: wp.array(dtype=wp.mat33),
+                     F2: wp.array(dtype=wp.mat33), rot2: wp.array(dtype=wp.quat), plastic2: wp.array(dtype=float), mass2: wp.array(dtype=float),
+                     vol2: wp.array(dtype=float), mu2: wp.array(dtype=float), lam2: wp.array(dtype=float),
+                     code2: wp.array(dtype=wp.int32), pid2: wp.array(dtype=wp.int32)):
+    """Reorder every particle field by ``order`` (cell-sorted) into the second buffer."""
+    i = wp.tid()
+    s = order[i]
+    x2[i] = x[s]
+    v2[i] = v[s]
+    C2[i] = C[s]
+    F2[i] = F[s]
+    rot2[i] = rot[s]
+    plastic2[i] = plastic[s]
+    mass2[i] = mass[s]
+    vol2[i] = vol[s]
+    mu2[i] = mu_p[s]
+    lam2[i] = lam_p[s]
+    code2[i] = code[s]
+    pid2[i] = pid[s]
+
+
+@wp.kernel
+def scatter_state(pid: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                  F: wp.array(dtype=wp.mat33), plastic: wp.array(dtype=float), count: int,
+                  out_x: wp.array(dtype=wp.vec3), out_v: wp.array(dtype=wp.vec3), out_J: wp.array(dtype=float),
+                  out_plastic: wp.array(dtype=float)):
+    """Particle state of environment 0 in the original particle order (for baking)."""
+    p = wp.tid()
+    q = pid[p]
+    if q < count:
+        out_x[q] = x[p]
+        out_v[q] = v[p]
+        out_J[q] = wp.determinant(F[p])
+        out_plastic[q] = plastic[p]

@@ -1,0 +1,185 @@
+"""MPM solver against analytic answers (CPU, small resolutions; each tolerance is stated in its test).
+
+Bodies are particle lattices (2 particles per cell per axis) so that set-up is instant; the
+materials are chosen so that the elastic wave speed allows large time steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from unipixie.solvers import effects as fx
+from unipixie.solvers import mpm
+from unipixie.solvers.body import Body
+from unipixie.solvers.material_sampling import HomogeneousMaterial
+from unipixie.solvers.scenario import Scenario
+
+G = 9.81
+
+
+def lattice(counts, spacing, origin=(0.0, 0.0, 0.0)):
+    """(prod(counts), 3) centres of a counts[0]×counts[1]×counts[2] lattice of pitch ``spacing``, metres."""
+    idx = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
+    return np.asarray(origin, dtype=np.float64) + (idx + 0.5) * spacing
+
+
+def block(cells, dx, origin=(0.0, 0.0, 0.0), tracked=None, stretch=1.0):
+    """A box of ``cells`` grid cells with 8 particles per cell; ``stretch`` scales x (pre-stretched bar)."""
+    pts = lattice([2 * c for c in cells], dx / 2, origin)
+    pts[:, 0] = origin[0] + (pts[:, 0] - origin[0]) * stretch
+    return Body(points=pts, point_volume=(dx / 2) ** 3 * stretch, tracked_points=tracked)
+
+
+def scenario(gravity=(0.0, 0.0, 0.0), ground=None, **kw):
+    return Scenario(gravity=list(gravity), ground_height=ground, **kw)
+
+
+def prepare(body, frames, E=1e5, nu=0.3, density=1000.0, cls="jelly", sc=None, **settings):
+    return mpm.prepare(body, HomogeneousMaterial(E, nu, density, cls), sc or scenario(), frames,
+                       settings=settings or None)
+
+
+def com(traj):
+    """(T, 3) mean particle position, metres (all particles have equal mass here)."""
+    return traj.particle_positions.astype(np.float64).mean(axis=1)
+
+
+def period_from_crossings(t, signal):
+    """Oscillation period from the mean spacing of the zero crossings of ``signal - mean``."""
+    x = np.asarray(signal, np.float64) - np.mean(signal)
+    neg = np.signbit(x)
+    i = np.where(neg[1:] != neg[:-1])[0]
+    tz = t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
+    assert len(tz) >= 3, f"only {len(tz)} zero crossings: no oscillation to measure"
+    return 2.0 * float(np.mean(np.diff(tz)))
+
+
+# --------------------------------------------------------------------------- 1. free fall
+def test_free_fall_centre_of_mass_follows_parabola():
+    """z(t) = z0 − g t²/2 within 1 % of the fall distance for t ≥ 0.05 s (no ground within reach).
+
+    Explicit (symplectic Euler) stepping lags by g·t·dt/2; before 0.05 s that first-order term is
+    the bound instead.
+    """
+    frames = np.linspace(0.0, 0.3, 16)
+    sim = prepare(block((4, 4, 4), 0.01, origin=(0, 0, 1.0)), frames, sc=scenario((0, 0, -G)))
+    traj = sim.run([], particle_states=True)
+    z = com(traj)[:, 2]
+    fall = z[0] - z
+    exact = 0.5 * G * frames ** 2
+    late = frames >= 0.05
+    assert np.all(np.abs(fall[late] - exact[late]) <= 0.01 * exact[late]), (fall, exact)
+    dt = traj.meta["dt_max"]
+    assert np.all(np.abs(fall - exact) <= 0.5 * G * frames * dt * 1.01 + 1e-6)
+    # the tracked points (here the particles' own rest positions) fall with them
+    assert np.allclose(traj.positions.mean(1)[:, 2], z, atol=1e-4)
+
+
+# --------------------------------------------------------------------------- 4. drag
+def test_linear_drag_decays_exponentially():
+    """Centre-of-mass speed follows v0·exp(−c t) within 3 % (no gravity, no ground)."""
+    frames = np.linspace(0.0, 1.0, 11)
+    c = 2.0
+    sim = prepare(block((4, 4, 4), 0.01), frames, sc=scenario(initial_velocity=[1.0, 0.5, 0.0]))
+    traj = sim.run([fx.make("linear_drag", c=c)], particle_states=True)
+    speed = np.linalg.norm(traj.particle_attributes["velocity"].astype(np.float64).mean(1), axis=1)
+    exact = np.hypot(1.0, 0.5) * np.exp(-c * frames)
+    assert np.allclose(speed, exact, rtol=0.03), (speed, exact)
+
+
+def test_quadratic_drag_follows_closed_form():
+    """Speed v0 / (1 + k v0 t) within 3 % (no gravity): the −k m |v| v law."""
+    frames = np.linspace(0.0, 1.0, 11)
+    k = 1.5
+    sim = prepare(block((4, 4, 4), 0.01), frames, sc=scenario(initial_velocity=[2.0, 0.0, 0.0]))
+    traj = sim.run([fx.make("quadratic_drag", k=k)], particle_states=True)
+    speed = np.linalg.norm(traj.particle_attributes["velocity"].astype(np.float64).mean(1), axis=1)
+    exact = 2.0 / (1.0 + k * 2.0 * frames)
+    assert np.allclose(speed, exact, rtol=0.03), (speed, exact)
+
+
+# --------------------------------------------------------------------------- 8. wind
+def test_wind_adds_to_gravity():
+    """Centre-of-mass acceleration (quadratic fit) equals g + a within 1 % (norm of the difference)."""
+    frames = np.linspace(0.0, 0.3, 16)
+    a = np.array([0.8, -0.5, 0.3])
+    sim = prepare(block((4, 4, 4), 0.01, origin=(0, 0, 1.0)), frames, sc=scenario((0, 0, -G)))
+    traj = sim.run([fx.make("wind", acceleration=a)], particle_states=True)
+    x = com(traj)
+    accel = np.array([2.0 * np.polyfit(frames, x[:, d], 2)[0] for d in range(3)])
+    expected = np.array([0.0, 0.0, -G]) + a
+    assert np.linalg.norm(accel - expected) <= 0.01 * np.linalg.norm(expected), (accel, expected)
+
+
+# --------------------------------------------------------------------------- 3. axial bar
+def _bar(E=1e5, stretch=1.02, frames_per_period=100, periods=3, cells=16, **settings):
+    """A free bar (cells × 2 × 2, dx = 1 cm, ν = 0) released from a uniform stretch; returns (t, length, T_exact)."""
+    dx, rho = 0.01, 1000.0
+    L = cells * dx
+    period = 2.0 * L / np.sqrt(E / rho)
+    ends = np.array([[0.0, dx, 0.5 + dx], [L * stretch, dx, 0.5 + dx]])
+    body = block((cells, 2, 2), dx, origin=(0.0, 0.0, 0.5), tracked=ends, stretch=stretch)
+    frames = np.linspace(0.0, periods * period, periods * frames_per_period + 1)
+    sim = prepare(body, frames, E=E, nu=0.0, density=rho, dx=dx,
+                  initial_deformation=np.diag([stretch, 1.0, 1.0]), **settings)
+    return sim, frames, period, L
+
+
+def test_axial_bar_period():
+    """A free bar released from a 2 % stretch oscillates with period 2L/c (c = sqrt(E/ρ), ν = 0) within 10 %."""
+    sim, frames, period, L = _bar()
+    traj = sim.run([])
+    length = traj.positions[:, 1, 0].astype(np.float64) - traj.positions[:, 0, 0]
+    measured = period_from_crossings(frames, length)
+    assert abs(measured / period - 1.0) < 0.10, (measured, period)
+    assert abs(np.mean(length) / L - 1.0) < 0.005  # oscillates about the rest length
+    assert 0.015 < (length.max() - L) / L < 0.025  # released from 2 % stretch
+
+
+def test_stiffness_region_scales_wave_speed():
+    """stiffness_region ×4 over the whole bar halves the period (c ∝ sqrt(E)) within 5 %."""
+    sim, frames, period, L = _bar()
+    whole = fx.make("stiffness_region", factor=4.0, region={"box": [[-1, -1, -1], [1, 1, 1]]})
+    stiff = sim.run([whole])
+    length = stiff.positions[:, 1, 0].astype(np.float64) - stiff.positions[:, 0, 0]
+    assert abs(period_from_crossings(frames, length) / (0.5 * period) - 1.0) < 0.05
+
+
+# --------------------------------------------------------------------------- 7. material damping
+def test_material_damping_spares_rigid_motion_and_damps_oscillation():
+    """Kelvin–Voigt damping: a translating + spinning block keeps its velocity (0.5 %); the bar's
+    oscillation amplitude decays as exp(−ω² η t / E) (1-D Kelvin–Voigt with viscosity 2η, ν = 0) within 25 %."""
+    eta = 20.0
+    frames = np.linspace(0.0, 0.2, 11)
+    spin = scenario(initial_velocity=[0.5, 0.0, 0.0], initial_angular_velocity=[0.0, 0.0, 3.0])
+    sim = prepare(block((4, 4, 4), 0.01), frames, sc=spin)
+    free, damped = sim.run([], particle_states=True), sim.run([fx.make("material_damping", eta=eta)], particle_states=True)
+    v_free = free.particle_attributes["velocity"].astype(np.float64)
+    v_damped = damped.particle_attributes["velocity"].astype(np.float64)
+    scale = np.abs(v_free).max()
+    assert np.abs(v_damped - v_free).max() < 0.005 * scale
+
+    sim, frames, period, L = _bar(periods=4)
+    E = 1e5
+    base = sim.run([])
+    visc = sim.run([fx.make("material_damping", eta=eta)])
+
+    omega = 2 * np.pi / period
+
+    def amplitude(traj):
+        """Amplitude of the fundamental mode in each period (Fourier projection of the bar's length)."""
+        length = traj.positions[:, 1, 0].astype(np.float64) - traj.positions[:, 0, 0]
+        per = (len(frames) - 1) // 4
+        out = []
+        for i in range(4):
+            t, y = frames[i * per:(i + 1) * per], length[i * per:(i + 1) * per]
+            out.append(2.0 * abs(np.mean((y - y.mean()) * np.exp(-1j * omega * t))))
+        return np.array(out)
+
+    a0, a1 = amplitude(base), amplitude(visc)
+    assert a0[-1] > 0.95 * a0[0], a0  # the undamped bar keeps its amplitude (low numerical dissipation)
+    expected = np.exp(-omega ** 2 * eta / E * 3 * period)  # from the first to the last period
+    measured = a1[-1] / a1[0]
+    assert measured < 0.7
+    assert abs(np.log(measured) / np.log(expected) - 1.0) < 0.25, (measured, expected)
