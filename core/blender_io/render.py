@@ -176,19 +176,24 @@ def _hash_array(h, arr) -> None:
 
 def _image_fingerprint(img, h) -> None:
     h.update(f"image:{img.name}:{img.source}:{tuple(img.size)}:{img.colorspace_settings.name}:{img.alpha_mode}".encode())
+    if img.is_dirty:                   # painted or edited in this session: what is in memory counts
+        px = np.empty(len(img.pixels), dtype=np.float32)
+        img.pixels.foreach_get(px)
+        _hash_array(h, px)
+        return
     if img.source == "GENERATED":
         h.update(f"{img.generated_type}:{tuple(img.generated_color)}:{img.generated_width}x{img.generated_height}".encode())
         return
-    if img.packed_file is not None and not img.is_dirty:
+    if img.packed_file is not None:
         h.update(bytes(img.packed_file.data))
         return
     path = Path(bpy.path.abspath(img.filepath)) if img.filepath else None
-    if path is not None and path.is_file() and not img.is_dirty:
+    if path is not None and path.is_file():
         with open(path, "rb") as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
         return
-    if img.has_data or img.is_dirty:   # painted in this session or otherwise in memory only
+    if img.has_data:                   # in memory only
         px = np.empty(len(img.pixels), dtype=np.float32)
         img.pixels.foreach_get(px)
         _hash_array(h, px)
@@ -297,7 +302,8 @@ def subject_fingerprint(objects) -> str:
 # --------------------------------------------------------------------------- the temporary scene
 def _setup_world(scene) -> None:
     world = bpy.data.worlds.new("UniPixie even light")
-    world.use_nodes = True
+    if world.node_tree is None:                    # Blender < 5 creates worlds without nodes
+        world.use_nodes = True
     bg = next(n for n in world.node_tree.nodes if n.type == "BACKGROUND")
     bg.inputs["Color"].default_value = (0.5, 0.5, 0.5, 1.0)
     bg.inputs["Strength"].default_value = 1.0
