@@ -252,19 +252,22 @@ def build_body(obj: BakeObject, solver: str = "mpm", repair: bool = True):
     body = Body.from_mesh(mesh, tracked_points=world, repair=repair)
     open_note = [w for w in body.warnings if "not closed" in w]
     if open_note:
-        edges = _boundary_edge_count(body.mesh)
-        raise UserError(f"object '{obj.name}': the mesh is open ({edges} boundary edges remain after filling holes), "
-                        f"so it has no inside for the {solver} solver to fill with material; close it "
-                        "(Edit Mode > Select All > Mesh > Clean Up > Fill Holes, or add a Solidify modifier and apply it)")
+        boundary, non_manifold = _edge_defects(body.mesh)
+        what = (f"open ({boundary} boundary edges remain after filling holes)" if boundary else
+                f"not a closed surface ({non_manifold} edges are shared by more than two faces, or it is flat)")
+        raise UserError(f"object '{obj.name}': the mesh is {what}, so it has no inside for the {solver} solver to "
+                        "fill with material; close it (Edit Mode > Select All > Mesh > Clean Up > Fill Holes / "
+                        "Merge by Distance, or add a Solidify modifier and apply it)")
     if float(body.mesh.volume) <= 0:
         raise UserError(f"object '{obj.name}': the closed mesh encloses no volume")
     return body, warnings + [f"object '{obj.name}': {w}" for w in body.warnings]
 
 
-def _boundary_edge_count(mesh) -> int:
+def _edge_defects(mesh) -> tuple[int, int]:
+    """(boundary edges, edges shared by more than two faces) of a triangle mesh."""
     edges = np.sort(mesh.edges, axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
-    return int(np.sum(counts == 1))
+    return int(np.sum(counts == 1)), int(np.sum(counts > 2))
 
 
 # --------------------------------------------------------------------------- material sources

@@ -134,11 +134,31 @@ class VIEW3D_PT_unipixie_bake(bpy.types.Panel):
 CLASSES = (UNIPIXIE_OT_bake, UNIPIXIE_OT_clear_bake, VIEW3D_PT_unipixie_bake)
 
 
+@bpy.app.handlers.persistent
+def _restore_after_undo(*_args):
+    bio.restore_trashed_files()
+
+
+@bpy.app.handlers.persistent
+def _empty_trash_on_load(*_args):
+    bio.empty_trash()
+
+
+_HANDLERS = ((bpy.app.handlers.undo_post, _restore_after_undo), (bpy.app.handlers.redo_post, _restore_after_undo),
+             (bpy.app.handlers.load_post, _empty_trash_on_load))
+
+
 def register():
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    for handlers, fn in _HANDLERS:
+        if fn not in handlers:
+            handlers.append(fn)
 
 
 def unregister():
+    for handlers, fn in _HANDLERS:
+        if fn in handlers:
+            handlers.remove(fn)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -67,6 +67,7 @@ def read_object(obj, scene=None) -> BakeObject:
     """The object's base mesh (before modifiers) as arrays: local rest positions, triangles, transform."""
     _check_bakeable(obj)
     scene = scene or bpy.context.scene
+    bpy.context.view_layer.update()  # transforms set from Python are applied to matrix_world here
     me = obj.data
     n = len(me.vertices)
     if n == 0:
@@ -418,7 +419,8 @@ def write_mesh_cache(obj, local: np.ndarray, frames: np.ndarray, interpolation: 
     mod = obj.modifiers.new(name=_unique({m.name for m in obj.modifiers}, f"{PREFIX} Mesh Cache"), type="MESH_CACHE")
     record.modifiers.append(mod.name)
     mod.cache_format = "PC2"
-    mod.filepath = str(path)
+    # relative to the .blend where it is saved (Blender remaps relative paths on "Save As")
+    mod.filepath = bpy.path.relpath(str(path)) if bpy.data.filepath else str(path)
     mod.frame_start = float(frames[0])
     mod.frame_scale = 1.0
     mod.play_mode = "SCENE"
@@ -574,7 +576,8 @@ def write_particles(obj, bo: BakeObject, traj, frames: np.ndarray, options: Bake
     pobj.display_type = "WIRE"
     yield 0.2
     local = world_bu.astype(np.float32)
-    mode = core_bake.vertex_output(P, len(frames), False, False, [])
+    mode = (options.output if options.output in ("shape_keys", "mesh_cache")
+            else core_bake.vertex_output(P, len(frames), False, False, []))
     if mode == "shape_keys":
         for f in write_shape_keys(pobj, local, frames, options.interpolation, record):
             yield 0.2 + 0.8 * f
@@ -586,8 +589,57 @@ def write_particles(obj, bo: BakeObject, traj, frames: np.ndarray, options: Bake
 
 
 # =========================================================================== removal
-def _remove_recorded(obj, rec: dict) -> None:
-    """Remove everything listed in a bake record (tolerates parts already gone)."""
+# PC2 files removed by clear_bake go to a session trash so that Ctrl-Z (which restores the Mesh Cache
+# modifier) can bring them back: the add-on calls restore_trashed_files() after undo/redo.
+_TRASHED: dict = {}
+
+
+def _trash(path: Path) -> None:
+    from ..paths import cache_dir
+
+    folder = cache_dir("bake_trash")
+    target = folder / f"{len(_TRASHED):06d}_{os.getpid()}_{path.name}"
+    key = os.path.normpath(str(path.resolve()))
+    _move(path, target)  # a rename when on the same file system
+    _TRASHED[key] = target
+
+
+def _move(src: Path, dst: Path) -> None:
+    import shutil
+
+    shutil.move(str(src), str(dst))
+
+
+def restore_trashed_files() -> int:
+    """Put back PC2 files that a cleared bake removed if a Mesh Cache modifier refers to them again
+    (after Ctrl-Z).  Returns how many were restored."""
+    restored = 0
+    for obj in bpy.data.objects:
+        for m in obj.modifiers:
+            if m.type == "MESH_CACHE" and m.filepath:
+                path = os.path.normpath(bpy.path.abspath(m.filepath))
+                src = _TRASHED.get(path)
+                if src is not None and not os.path.exists(path) and Path(src).is_file():
+                    os.makedirs(os.path.dirname(path), exist_ok=True)
+                    _move(Path(src), Path(path))
+                    del _TRASHED[path]
+                    restored += 1
+    return restored
+
+
+def empty_trash() -> None:
+    """Delete the PC2 files kept for undo (a new file was loaded: the undo history is gone)."""
+    for src in list(_TRASHED.values()):
+        with contextlib.suppress(OSError):
+            Path(src).unlink()
+    _TRASHED.clear()
+
+
+def _remove_recorded(obj, rec: dict, keep_for_undo: bool = False) -> None:
+    """Remove everything listed in a bake record (tolerates parts already gone).
+
+    ``keep_for_undo``: PC2 files go to a session trash (see :func:`restore_trashed_files`) instead of
+    being deleted."""
     data = bpy.data
     # actions first (they reference the ids)
     for name in rec.get("actions", []):
@@ -622,7 +674,10 @@ def _remove_recorded(obj, rec: dict) -> None:
     for path in rec.get("files", []):
         p = Path(path)
         if p.suffix == ".pc2" and p.is_file():
-            p.unlink()
+            if keep_for_undo:
+                _trash(p)
+            else:
+                p.unlink()
     for folder in rec.get("folders", []):
         with contextlib.suppress(OSError):
             os.rmdir(folder)  # only when empty
@@ -662,7 +717,7 @@ def clear_bake(obj) -> dict:
                 if m.type == "MESH_CACHE" and m.filepath:
                     files.add(os.path.normpath(bpy.path.abspath(m.filepath)))
     rec = {**rec, "files": sorted(files)}
-    _remove_recorded(obj, rec)
+    _remove_recorded(obj, rec, keep_for_undo=True)
     if BAKE_RECORD_KEY in obj:
         del obj[BAKE_RECORD_KEY]
     s = object_settings(obj)
