@@ -303,7 +303,8 @@ class MPMSimulation(Simulation):
         C0 = _skew(sc.initial_angular_velocity)
         self._C0 = np.where(held[:, None, None], 0.0, C0[None]).astype(np.float32)
         F0 = np.eye(3) if s.initial_deformation is None else s.initial_deformation
-        self._F0 = np.where(held[:, None, None], np.eye(3)[None], F0[None]).astype(np.float32)
+        rigid = held_class[sampled.material]  # stationary material never deforms; clamped material may
+        self._F0 = np.where(rigid[:, None, None], np.eye(3)[None], F0[None]).astype(np.float32)
         U, _, Vt = np.linalg.svd(F0)
         R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
         from scipy.spatial.transform import Rotation
@@ -617,7 +618,7 @@ class MPMSimulation(Simulation):
                                  Env["origin"], nodes, dims, dx, has_ground, ground_z, 0],
                          outputs=[G["v"]])
         g2p = wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True,
-                        inputs=[P["x"], P["v"], P["C"], P["code"], T["x"], T["v"], T["held"], G["v"], Env["dt"],
+                        inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"], Env["dt"],
                                 Env["steps"], Env["origin"], N, n, M_alloc, nodes, dims, dx, inv_dx, has_ground,
                                 ground_z, 0])
         for step in range(first, stop):

@@ -38,7 +38,12 @@ PLASTIC_DRUCKER_PRAGER = wp.constant(materials.PLASTICITY_MODELS.index("drucker_
 PLASTIC_SNOW = wp.constant(materials.PLASTICITY_MODELS.index("snow"))
 
 HELD_FLAG = wp.constant(16)
-"""``code = class_id + HELD_FLAG`` marks a particle held at its rest position."""
+"""``code = class_id + HELD_FLAG`` marks a particle held at its rest position.
+
+Held particles of a rigid class (``ClassLaw.held``: stationary) carry no stress.  Held particles
+of any other class (material in the clamp box) keep their position and zero velocity but still
+deform with the grid (their ``C`` and ``F`` follow the node velocities) and carry stress, so the
+stress is continuous into the clamp, as for material embedded in a clamp."""
 
 MIN_SINGULAR_VALUE = wp.constant(1.0e-4)
 """Lower clamp of singular values before taking logarithms (Hencky strain of inverted cells)."""
@@ -46,8 +51,11 @@ MIN_SINGULAR_VALUE = wp.constant(1.0e-4)
 MIN_FLUID_J = wp.constant(1.0e-2)
 """Lower clamp of the fluid's volume ratio J (keeps the pressure law finite under extreme compression)."""
 
-HELD_MASS_FRACTION = wp.constant(0.5)
-"""A grid node is fixed when at least this fraction of its mass comes from held particles."""
+HELD_MASS_FRACTION = wp.constant(0.25)
+"""A grid node is fixed when at least this fraction of its mass comes from held particles.
+
+The node plane on the face of a clamp box gets about half its mass from held material, the next
+plane outside about 5 %: a quarter fixes the first and frees the second."""
 
 GROUND_TOLERANCE_CELLS = wp.constant(0.01)
 """Nodes up to this many cells above the ground plane count as on the ground (float32 round-off)."""
@@ -218,11 +226,11 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
 
     c = code[p]
     held = c >= HELD_FLAG
+    law = laws[c % HELD_FLAG]
     m = mass[p]
     Cp = C[p]
     tau = wp.mat33(0.0)
-    if not held:
-        law = laws[c % HELD_FLAG]
+    if law.held == 0:
         mu = mu_p[p]
         lam = lam_p[p]
         Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
@@ -284,12 +292,15 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         plastic[p] = state
 
     affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
+    vp = v[p]
+    if held:
+        vp = wp.vec3(0.0)
     fx = (xp - origin) * inv_dx - base
     w = bspline_weights(fx)
     # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
     # so it is a0 + i a_x + j a_y + k a_z with the columns a_* of affine * dx: built up incrementally.
     cols = wp.transpose(affine * dx)
-    a0 = m * v[p] - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+    a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
     ib = int(base[0])
     jb = int(base[1])
     kb = int(base[2])
@@ -360,7 +371,7 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
 
 @wp.kernel
 def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        code: wp.array(dtype=wp.int32), tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
         t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
         env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
         n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
@@ -374,15 +385,19 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
     tid = wp.tid()
     particle = tid < n_particles
     env = int(0)
+    held = bool(False)
     xp = wp.vec3()
     if particle:
         env = tid / n_per_env
         if substep >= env_steps[env]:
             return
-        if code[tid] >= HELD_FLAG:
-            v[tid] = wp.vec3(0.0)
-            C[tid] = wp.mat33(0.0)
-            return
+        c = code[tid]
+        if c >= HELD_FLAG:
+            held = True
+            if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
+                v[tid] = wp.vec3(0.0)
+                C[tid] = wp.mat33(0.0)
+                return
         xp = x[tid]
     else:
         t = tid - n_particles
@@ -423,12 +438,15 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                     bj = bj + float(j) * wv
                     bk = bk + float(k) * wv
         B = (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx)) * dx
+        C[tid] = (4.0 * inv_dx * inv_dx) * B
+        if held:  # clamped material: stays put, deforms with the grid
+            v[tid] = wp.vec3(0.0)
+            return
         xn = xp + dt * vel
         if has_ground != 0 and xn[2] < ground_z:
             xn = wp.vec3(xn[0], xn[1], ground_z)
         x[tid] = xn
         v[tid] = vel
-        C[tid] = (4.0 * inv_dx * inv_dx) * B
         return
     # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
     W = float(0.0)
@@ -497,8 +515,8 @@ def frame_stats(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp
             hi = wp.max(hi, xp)
             vmax2 = wp.max(vmax2, wp.dot(vp, vp))
             c = code[p]
-            if c < HELD_FLAG:
-                law = laws[c]
+            law = laws[c % HELD_FLAG]
+            if law.held == 0:
                 modulus = lam_p[p] + 2.0 * mu_p[p]
                 if law.elastic == LAW_WEAKLY_COMPRESSIBLE:
                     modulus = lam_p[p] + 2.0 / 3.0 * mu_p[p]

@@ -183,3 +183,65 @@ def test_material_damping_spares_rigid_motion_and_damps_oscillation():
     measured = a1[-1] / a1[0]
     assert measured < 0.7
     assert abs(np.log(measured) / np.log(expected) - 1.0) < 0.25, (measured, expected)
+
+
+# --------------------------------------------------------------------------- 5. ground friction
+def test_ground_friction_stopping_distance():
+    """A block sliding at v0 on the ground stops after v0²/(2 μ g) within 10 %; frictionless it keeps sliding."""
+    v0, mu = 1.0, 0.5
+    frames = np.linspace(0.0, 0.3, 61)
+    sim = prepare(block((4, 4, 2), 0.01), frames, E=1e6,
+                  sc=scenario((0, 0, -G), ground=0.0, initial_velocity=[v0, 0.0, 0.0]))
+    rough = sim.run([fx.make("ground_friction", mu=mu)], particle_states=True)
+    travelled = com(rough)[-1, 0] - com(rough)[0, 0]
+    assert abs(travelled / (v0 ** 2 / (2 * mu * G)) - 1.0) < 0.10, travelled
+    speed = rough.particle_attributes["velocity"].astype(np.float64).mean(1)[:, 0]
+    stopped = frames[np.argmax(np.abs(speed) < 0.01)]
+    assert abs(stopped / (v0 / (mu * G)) - 1.0) < 0.10, stopped
+    smooth = sim.run([], particle_states=True)
+    assert abs(smooth.particle_attributes["velocity"].astype(np.float64).mean(1)[-1, 0] / v0 - 1.0) < 0.01
+    assert abs(com(smooth)[-1, 0] - com(smooth)[0, 0] - v0 * frames[-1]) < 0.01 * v0 * frames[-1]
+    assert np.all(smooth.particle_positions[..., 2] >= 0.0)  # nothing sinks through the ground
+
+
+# --------------------------------------------------------------------------- 6. plasticity
+def test_plasticity_permanent_set_above_yield_only():
+    """A bar stretched 5 % and released: with yield stress E/100 it keeps a permanent set of at least half the
+    plastic strain log(1.05) − σy/E; with yield stress E/10 (never reached) it returns to within 0.5 % of L."""
+    E = 1e5
+    sim, frames, period, L = _bar(E=E, stretch=1.05, periods=4, frames_per_period=40)
+    per = (len(frames) - 1) // 4
+
+    def rest_strain(yield_stress):
+        traj = sim.run([fx.make("plasticity", yield_stress=yield_stress)])
+        length = traj.positions[:, 1, 0].astype(np.float64) - traj.positions[:, 0, 0]
+        return length[-2 * per:].mean() / L - 1.0  # mean over the last two periods = rest length
+
+    above = rest_strain(0.01 * E)
+    assert 0.5 * (np.log(1.05) - 0.01) < above < np.log(1.05), above
+    below = rest_strain(0.1 * E)
+    assert abs(below) < 0.005, below
+
+
+# --------------------------------------------------------------------------- 2. cantilever
+def test_cantilever_bending_frequency_and_sag():
+    """A cantilever (24 × 4 × 4 cells, E = 10 MPa, ν = 0) clamped by the scenario's pinned box and released
+    straight under gravity: the tip oscillates about the static sag δ = ρ A g L⁴ / (8 E I) at the first
+    bending frequency f₁ = 1.875² / (2π L²) · sqrt(E I / (ρ A)).  Frequency within 10 %, sag (mean over two
+    periods) within 15 % of Euler–Bernoulli."""
+    dx, cells_long, cells_thick, clamp_cells = 0.01, 24, 4, 4
+    E, rho = 1e7, 1000.0
+    L, h = cells_long * dx, cells_thick * dx
+    area, inertia = h * h, h ** 4 / 12
+    f1 = 1.875 ** 2 / (2 * np.pi * L ** 2) * np.sqrt(E * inertia / (rho * area))
+    sag = rho * area * G * L ** 4 / (8 * E * inertia)
+    tip = np.array([[L, h / 2, 0.5 + h / 2]])
+    body = block((cells_long + clamp_cells, cells_thick, cells_thick), dx, origin=(-clamp_cells * dx, 0.0, 0.5),
+                 tracked=tip)
+    frames = np.linspace(0.0, 2.0 / f1, 81)
+    sc = scenario((0, 0, -G), pinned_box=[[-1.0, -1.0, -1.0], [0.0, 1.0, 2.0]])
+    traj = prepare(body, frames, E=E, nu=0.0, density=rho, sc=sc, dx=dx).run([])
+    deflection = traj.positions[:, 0, 2].astype(np.float64) - tip[0, 2]
+    measured_f = 1.0 / period_from_crossings(frames, deflection)
+    assert abs(measured_f / f1 - 1.0) < 0.10, (measured_f, f1)
+    assert abs(-deflection.mean() / sag - 1.0) < 0.15, (-deflection.mean(), sag)
