@@ -529,8 +529,8 @@ class SimulationResult:
     """What the Blender writer needs from a simulation.
 
     trajectory: the solver's Trajectory (world metres; positions of the object's vertices).
-    skinning_weights: LBS only — (N, H+1) float64 handle weights of the vertices, constant handle first,
-        such that ``x_t = Σ_h w_h · handle_transforms[t, h] @ [x_0; 1]``.
+    skinning_weights: LBS only — (N, H+1) float64 handle weights of the vertices, the constant handle
+        last, as the LBS solver defines them (see :func:`lbs_blend_form`).
     material_description / warnings / seconds: for the report and the bake record.
     """
 
@@ -628,28 +628,14 @@ def check_trajectory(traj, n_vertices: int, n_frames: int, name: str = "") -> No
 
 
 def lbs_vertex_weights(sim, traj, obj: BakeObject) -> Optional[np.ndarray]:
-    """(N, H+1) skinning weights of the vertices (constant handle first), if the LBS simulation exposes them.
-
-    Looks for, in order: ``traj.particle_attributes["vertex_weights"]`` /
-    ``traj.meta["vertex_weights"]``, ``sim.tracked_weights`` / ``sim.vertex_weights`` /
-    ``sim.point_weights(points)``.  Returns ``None`` when none exists (the bake then uses shape keys).
-    """
-    H1 = None if traj.handle_transforms is None else traj.handle_transforms.shape[1]
-    candidates = [traj.particle_attributes.get("vertex_weights") if traj.particle_attributes else None,
-                  traj.meta.get("vertex_weights") if isinstance(traj.meta, dict) else None]
-    for attr in ("tracked_weights", "vertex_weights"):
-        candidates.append(getattr(sim, attr, None))
-    fn = getattr(sim, "point_weights", None) or getattr(sim, "weights_at", None)
-    for c in candidates:
-        if c is not None:
-            w = np.asarray(c, dtype=np.float64)
-            if H1 is not None and w.shape == (obj.vertex_count, H1):
-                return w
-    if callable(fn) and H1 is not None:
-        w = np.asarray(fn(obj.rest_world), dtype=np.float64)
-        if w.shape == (obj.vertex_count, H1):
-            return w
-    return None
+    """(N, H+1) skinning weights of the vertices (the constant handle last) from the LBS simulation
+    (``sim.weights(points)``, :mod:`unipixie.solvers.lbs`); ``None`` if it has none that fit the
+    handles (the bake then stores the motion per vertex)."""
+    fn = getattr(sim, "weights", None)
+    if traj.handle_transforms is None or not callable(fn):
+        return None
+    w = np.asarray(fn(np.asarray(sim.tracked_rest, dtype=np.float64)), dtype=np.float64)
+    return w if w.shape == (obj.vertex_count, traj.handle_transforms.shape[1]) else None
 
 
 class BackgroundRun:
@@ -758,38 +744,85 @@ def trajectory_to_local(obj: BakeObject, positions: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- LBS handles → bones
+def lbs_blend_form(weights: np.ndarray, handle_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+    """Rewrite the LBS solver's motion as a convex blend of absolute affine maps (what an armature does).
+
+    The LBS solver (:mod:`unipixie.solvers.lbs`) moves a rest point X (world metres) as
+    ``x = A [X; 1] + Σ_{h<H} w_h(X) D_h [X; 1]`` with ``A = handle_transforms[:, H]`` (the constant
+    handle, a full affine map) and ``D_h = handle_transforms[:, h]`` displacement maps; ``weights``
+    are (N, H+1) with the last column 1.  With ``K = max_X Σ_h |w_h(X)|`` this equals
+    ``Σ_b ω_b(X) M_b [X; 1]`` for the bones ``M_0 = A`` (weight ``1 − Σ|w_h|/K``) and
+    ``M_h± = A ± K D_h`` (weight ``w_h⁺/K`` or ``w_h⁻/K``): weights in [0, 1] summing to 1, as
+    Blender's Armature modifier needs.  Bones whose weight is zero everywhere are dropped.
+
+    Returns ``(maps (T, B, 4, 4) world-space, bone_weights (N, B), labels)`` with labels such as
+    ``"constant"``, ``"03+"``, ``"03-"``.
+    """
+    W = np.asarray(weights, dtype=np.float64)
+    HT = np.asarray(handle_transforms, dtype=np.float64)
+    T, H1 = HT.shape[:2]
+    H = H1 - 1
+    if W.ndim != 2 or W.shape[1] != H1:
+        raise ValueError(f"weights must be (N, {H1}), got {W.shape}")
+    w = W[:, :H]
+    K = float(np.max(np.sum(np.abs(w), axis=1))) if H else 0.0
+    K = max(K, 1e-12)
+
+    def affine(m):
+        out = np.zeros(m.shape[:-2] + (4, 4))
+        out[..., :3, :] = m
+        out[..., 3, 3] = 1.0
+        return out
+
+    A = affine(HT[:, H])
+    maps = [A]
+    bone_w = [1.0 - np.sum(np.abs(w), axis=1) / K]
+    labels = ["constant"]
+    for h in range(H):
+        D = np.zeros((T, 4, 4))
+        D[:, :3, :] = HT[:, h]
+        for sign, part in ((1.0, np.clip(w[:, h], 0, None)), (-1.0, np.clip(-w[:, h], 0, None))):
+            if np.any(part > 0):
+                maps.append(A + sign * K * D)
+                bone_w.append(part / K)
+                labels.append(f"{h:02d}{'+' if sign > 0 else '-'}")
+    return np.stack(maps, axis=1), np.clip(np.stack(bone_w, axis=1), 0.0, 1.0), labels
+
+
 @dataclass
 class ArmaturePlan:
     """Bones that reproduce an LBS motion in Blender's Armature modifier (object-local space).
 
-    rest: (B, 4, 4) float64 bone rest matrices (``bone.matrix_local``): rotation columns = the bone's
-        x, y, z axes, translation = its head.
-    location / rotation / scale: (T, B, 3), (T, B, 4) w-x-y-z quaternions, (T, B, 3) — the pose
-        channels (``matrix_basis`` = T·R·S) per frame.
-    weights: (N, B) float32 vertex-group weights in [0, 1] (Blender normalises them per vertex).
+    Each bone b of the blend (:func:`lbs_blend_form`) is a chain of two bones with the same head
+    ``heads[b]`` and identity rest orientation (pointing along +Y): a non-deforming *parent* keyed
+    with location ``parent_location``, rotation ``parent_rotation`` (U) and scale ``parent_scale`` (Σ),
+    and a deforming *child* (inherits rotation and scale) keyed with rotation ``child_rotation``
+    (Vᵀ).  Their product is ``U Σ Vᵀ``, the singular value decomposition of the bone's affine map,
+    so any orientation-preserving affine map — shear and stretch along turning axes included — is
+    exact at every frame.
+
+    heads: (B, 3) object-local; quaternions are (T, B, 4) w-x-y-z; scales (T, B, 3).
+    local_maps: (T, B, 4, 4) the bones' affine maps in object-local coordinates.
+    weights: (N, B) float32 vertex-group weights in [0, 1], summing to 1 per vertex.
+    labels: which LBS handle each bone comes from.
     max_error: largest distance (metres) between the armature's result and the trajectory.
     bone_length: display length of the bones, Blender units.
     """
 
-    rest: np.ndarray
-    location: np.ndarray
-    rotation: np.ndarray
-    scale: np.ndarray
+    heads: np.ndarray
+    local_maps: np.ndarray
+    parent_location: np.ndarray
+    parent_rotation: np.ndarray
+    parent_scale: np.ndarray
+    child_rotation: np.ndarray
     weights: np.ndarray
+    labels: list
     max_error: float
     bone_length: float
 
     @property
     def bone_count(self) -> int:
-        return int(self.rest.shape[0])
-
-
-def polar_decompose(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(…, 3, 3) → (R, P) with A = R P, R a rotation (det +1 where det A > 0), P symmetric (scipy-free SVD)."""
-    U, s, Vt = np.linalg.svd(A)
-    R = U @ Vt
-    P = np.swapaxes(Vt, -1, -2) @ (s[..., :, None] * Vt)
-    return R, P
+        return int(self.heads.shape[0])
 
 
 def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -809,106 +842,137 @@ def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], axis=1)).as_matrix().reshape(*shape, 3, 3)
 
 
+def _continuous_quaternions(q: np.ndarray) -> np.ndarray:
+    """(T, …, 4): flip signs so consecutive frames lie on one hemisphere (interpolation takes the short way)."""
+    q = q.copy()
+    for t in range(1, q.shape[0]):
+        flip = np.sum(q[t] * q[t - 1], axis=-1) < 0
+        q[t][flip] *= -1.0
+    return q
+
+
+def continuous_svd(L: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T, 3, 3) with det > 0 → (U, s, V) with L = U diag(s) Vᵀ, U and V proper rotations, s > 0, and the
+    columns of V matched frame to frame (order and sign) so that the keyed rotations change smoothly."""
+    import itertools
+
+    T = L.shape[0]
+    U, s, Vt = np.linalg.svd(L)
+    V = np.swapaxes(Vt, -1, -2)
+    fix = np.linalg.det(V) < 0  # det L > 0: det U = det V; make both proper
+    V[fix, :, 2] *= -1
+    U[fix, :, 2] *= -1
+    perms = [np.array(p) for p in itertools.permutations(range(3))]
+    for t in range(1, T):
+        M = V[t - 1].T @ V[t]
+        best = max(perms, key=lambda p: float(np.sum(np.abs(M[np.arange(3), p]))))
+        V[t], U[t], s[t] = V[t][:, best], U[t][:, best], s[t][best]
+        signs = np.sign(np.sum(V[t - 1] * V[t], axis=0))
+        signs[signs == 0] = 1.0
+        if np.prod(signs) < 0:  # keep V proper: leave the least aligned axis unflipped
+            k = int(np.argmin(np.abs(np.sum(V[t - 1] * V[t], axis=0))))
+            signs[k] *= -1
+        V[t] *= signs
+        U[t] *= signs
+        if np.linalg.det(V[t]) < 0:  # an odd permutation: flip the least aligned axis of both
+            k = int(np.argmin(np.abs(np.sum(V[t - 1] * V[t], axis=0))))
+            V[t][:, k] *= -1
+            U[t][:, k] *= -1
+    return U, s, V
+
+
+def chain_channels(local_maps: np.ndarray, heads: np.ndarray):
+    """Pose channels of the parent/child bone chains (see :class:`ArmaturePlan`).
+
+    local_maps: (T, B, 4, 4) object-local affine maps (det > 0); heads: (B, 3) the bones' rest heads.
+    Returns parent location (T, B, 3), parent rotation (T, B, 4), parent scale (T, B, 3), child rotation (T, B, 4).
+    """
+    T, B = local_maps.shape[:2]
+    loc = np.zeros((T, B, 3))
+    scale = np.zeros((T, B, 3))
+    Uq = np.zeros((T, B, 4))
+    Vq = np.zeros((T, B, 4))
+    for b in range(B):
+        A = local_maps[:, b, :3, :3]
+        U, s, V = continuous_svd(A)
+        h = heads[b]
+        # child: x → Vᵀ(x − h) + h; parent: y → U Σ (y − h) + h + t  ⇒  t = b + A h − h
+        loc[:, b] = local_maps[:, b, :3, 3] + A @ h - h
+        scale[:, b] = s
+        Uq[:, b] = _quat_from_matrix(U)
+        Vq[:, b] = _quat_from_matrix(np.swapaxes(V, -1, -2))
+    return loc, _continuous_quaternions(Uq), scale, _continuous_quaternions(Vq)
+
+
+def chain_deform(heads: np.ndarray, loc: np.ndarray, Uq: np.ndarray, scale: np.ndarray, Vq: np.ndarray) -> np.ndarray:
+    """(T, B, 4, 4) deform matrices Blender builds from the chain channels (parent ∘ child, rest = Tr(head))."""
+    T, B = loc.shape[:2]
+    U = _matrix_from_quat(Uq)
+    Vt = _matrix_from_quat(Vq)
+    lin = U * scale[..., None, :] @ Vt
+    out = np.zeros((T, B, 4, 4))
+    out[..., :3, :3] = lin
+    # x → U Σ (Vᵀ(x − h) + h − h) + h + t = lin x − lin h + h + t
+    out[..., :3, 3] = -np.einsum("tbij,bj->tbi", lin, heads) + heads[None] + loc
+    out[..., 3, 3] = 1.0
+    return out
+
+
 def armature_deform(rest_local: np.ndarray, weights: np.ndarray, deform: np.ndarray) -> np.ndarray:
     """What Blender's Armature modifier computes (linear blending, vertex groups, no preserve-volume).
 
     rest_local: (N, 3); weights: (N, B) ≥ 0; deform: (T, B, 4, 4) bone deform matrices
-    (pose matrix × rest matrix⁻¹).  Vertices with total weight ≤ 1e-4 stay at rest (as in Blender).
-    Returns (T, N, 3) float64.
+    (pose matrix × rest matrix⁻¹).  Weights are normalised per vertex; vertices with total weight
+    ≤ 1e-4 stay at rest (as in Blender).  Returns (T, N, 3) float64.
     """
     x = np.asarray(rest_local, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     total = w.sum(1)
     ok = total > 1e-4
     wn = np.where(ok[:, None], w / np.where(ok, total, 1.0)[:, None], 0.0)
-    A = deform[..., :3, :3]
-    b = deform[..., :3, 3]
-    # per frame: Σ_b wn[n, b] (A_b x_n + b_b)
-    moved = np.einsum("nb,tbij,nj->tni", wn, A, x) + np.einsum("nb,tbi->tni", wn, b)
+    moved = np.einsum("nb,tbij,nj->tni", wn, deform[..., :3, :3], x) + np.einsum("nb,tbi->tni", wn, deform[..., :3, 3])
     return np.where(ok[None, :, None], moved, x[None])
 
 
 def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.ndarray, positions: np.ndarray,
                   tolerance: float = ARMATURE_TOLERANCE) -> tuple[Optional[ArmaturePlan], str]:
-    """Map LBS handles to bones, or explain why they cannot be.
+    """Map an LBS motion to bones, or explain why it cannot be done.
 
-    weights: (N, H) vertex weights of the handles (constant handle included).
-    handle_transforms: (T, H, 3, 4) world-space affine maps, ``x_t = Σ_h w_h A_h [x_0; 1]``.
-    positions: (T, N, 3) the trajectory (world metres) the armature must reproduce.
-    tolerance: allowed error as a fraction of the object's size.
+    weights: (N, H+1) vertex weights (last = the constant handle); handle_transforms: (T, H+1, 3, 4)
+    in the LBS solver's form (:func:`lbs_blend_form`); positions: (T, N, 3) the trajectory (world
+    metres) the armature must reproduce; tolerance: allowed error as a fraction of the object's size.
 
-    How it maps: each handle's world affine map is conjugated into the object's local space
-    (``L = S⁻¹ A S`` with S the object's world-from-local matrix), then expressed in the bone's rest
-    frame ``G = R₀⁻¹ L R₀`` and split by the polar decomposition ``G₃ = Q P`` into a rotation Q and a
-    symmetric stretch P.  A bone carries translation, rotation and a scale along its own three axes,
-    so P is replaced by its diagonal in the bone frame; R₀ is chosen per bone as the principal axes of
-    the handle's average stretch so that, where the stretch keeps its axes, nothing is lost.  Blender
-    clamps vertex-group weights to [0, 1] and normalises them per vertex, so the weights are clamped
-    and normalised too.  The resulting motion is evaluated exactly as the Armature modifier does and
-    compared with the trajectory; if the largest error exceeds ``tolerance × size`` (shear,
-    stretch along rotating axes, reflections, negative or non-normalised weights), the plan is
-    refused and the caller stores the motion per vertex.
-    Returns ``(plan, "")`` or ``(None, reason)``.
+    The blend's bone maps are conjugated into the object's local space (``L = S⁻¹ M S``, S the
+    world-from-local matrix) and each becomes a parent/child bone chain keyed with its singular
+    value decomposition (:class:`ArmaturePlan`).  Refused (``(None, reason)``) when a bone map
+    mirrors or collapses space (det ≤ 0: no rotation and positive scale can make it), or when the
+    motion evaluated exactly as the Armature modifier does misses the trajectory by more than
+    ``tolerance × size``.
     """
     W = np.asarray(weights, dtype=np.float64)
-    A = np.asarray(handle_transforms, dtype=np.float64)
-    T, H = A.shape[:2]
     N = obj.vertex_count
-    if W.shape != (N, H):
-        return None, f"the skinning weights have shape {W.shape}, expected {(N, H)}"
-    size_m = max(obj.size, 1e-12)
+    if W.ndim != 2 or W.shape[0] != N or handle_transforms is None or W.shape[1] != np.shape(handle_transforms)[1]:
+        return None, f"the skinning weights have shape {W.shape}, which does not fit {N} vertices and the handles"
+    maps, bone_w, labels = lbs_blend_form(W, handle_transforms)
     S = obj.world_from_local
-    S_inv = np.linalg.inv(S)
-    A4 = np.zeros((T, H, 4, 4))
-    A4[..., :3, :] = A
-    A4[..., 3, 3] = 1.0
-    L = S_inv @ A4 @ S  # (T, H, 4, 4) local-space handle maps
+    L = np.linalg.inv(S) @ maps @ S
     det = np.linalg.det(L[..., :3, :3])
     if np.any(det <= 0):
-        return None, "a handle transform mirrors or collapses space, which a bone cannot do"
-    Wc = np.clip(W, 0.0, 1.0)
-    R_all, P_all = polar_decompose(L[..., :3, :3])
-    # bone frame: principal axes of the mean stretch (sorted, right-handed)
-    rest = np.zeros((H, 4, 4))
+        return None, "a handle transform (scaled by the weights' range) mirrors or collapses space, which no bone can do"
     x0 = obj.rest_local
-    wsum = Wc.sum(0)
-    for h in range(H):
-        evals, evecs = np.linalg.eigh(P_all[:, h].mean(0))
-        R0 = evecs[:, ::-1]
-        if np.linalg.det(R0) < 0:
-            R0[:, 2] = -R0[:, 2]
-        rest[h, :3, :3] = R0
-        head = (Wc[:, h:h + 1] * x0).sum(0) / wsum[h] if wsum[h] > 1e-9 else x0.mean(0)
-        rest[h, :3, 3] = head
-        rest[h, 3, 3] = 1.0
-    rest_inv = np.linalg.inv(rest)
-    G = rest_inv[None] @ L @ rest[None]  # (T, H, 4, 4) in bone-rest frames
-    Q, P = polar_decompose(G[..., :3, :3])
-    scale = np.diagonal(P, axis1=-2, axis2=-1).copy()
-    if np.any(scale <= 0):
-        return None, "a handle's stretch is not positive along the bone's axes"
-    location = G[..., :3, 3].copy()
-    quat = _quat_from_matrix(Q)
-    # keep quaternions on one hemisphere frame to frame so interpolation takes the short way
-    for t in range(1, T):
-        flip = np.sum(quat[t] * quat[t - 1], axis=-1) < 0
-        quat[t, flip] *= -1.0
-    # rebuild exactly what Blender will evaluate and compare with the trajectory
-    basis = np.zeros((T, H, 4, 4))
-    basis[..., :3, :3] = _matrix_from_quat(quat) * scale[..., None, :]
-    basis[..., :3, 3] = location
-    basis[..., 3, 3] = 1.0
-    deform = rest[None] @ basis @ rest_inv[None]
-    moved_local = armature_deform(x0, Wc, deform)
-    moved_world = obj.to_world(moved_local)
-    err = float(np.max(np.linalg.norm(moved_world - np.asarray(positions, dtype=np.float64), axis=-1)))
-    limit = tolerance * size_m
+    wsum = bone_w.sum(0)
+    heads = np.where(wsum[:, None] > 1e-9, (bone_w.T @ x0) / np.maximum(wsum, 1e-12)[:, None], x0.mean(0))
+    loc, Uq, scale, Vq = chain_channels(L, heads)
+    moved = obj.to_world(armature_deform(x0, bone_w, chain_deform(heads, loc, Uq, scale, Vq)))
+    err = float(np.max(np.linalg.norm(moved - np.asarray(positions, dtype=np.float64), axis=-1)))
+    limit = tolerance * max(obj.size, 1e-12)
     if not err <= limit:
-        return None, (f"the LBS handles are not representable by bones within {limit:.3g} m (largest error "
-                      f"{err:.3g} m: shear, stretch along turning axes or weights outside [0, 1])")
+        return None, (f"the armature misses the LBS motion by {err:.3g} m (allowed {limit:.3g} m): the vertex "
+                      "weights do not reproduce the solver's skinning")
     bone_length = 0.1 * float(np.max(x0.max(0) - x0.min(0)) or 1.0)
-    return ArmaturePlan(rest=rest, location=location, rotation=quat, scale=scale, weights=Wc.astype(np.float32),
-                        max_error=err, bone_length=bone_length), ""
+    return ArmaturePlan(heads=heads, local_maps=L, parent_location=loc, parent_rotation=Uq, parent_scale=scale,
+                        child_rotation=Vq, weights=bone_w.astype(np.float32), labels=labels, max_error=err,
+                        bone_length=bone_length), ""
 
 
 # --------------------------------------------------------------------------- PC2 point caches

@@ -219,44 +219,61 @@ def test_background_run_cancels_and_reraises():
 
 
 # --------------------------------------------------------------------------- the armature plan
-def _lbs_motion(obj, T=5, H=3, shear=0.0, seed=0):
+def lbs_motion(rest, T=5, H=3, seed=0, shear=0.1, handle_scale=0.05):
+    """A motion in the LBS solver's form: x = A[X;1] + Σ_h w_h D_h [X;1] (weights may be negative)."""
     rng = np.random.default_rng(seed)
-    rest = obj.rest_world
-    W = rng.random((len(rest), H))
-    W /= W.sum(1, keepdims=True)
-    A = np.zeros((T, H, 3, 4))
+    W = np.concatenate([rng.normal(0.3, 0.5, (len(rest), H)), np.ones((len(rest), 1))], axis=1)
+    HT = np.zeros((T, H + 1, 3, 4))
     c = rest.mean(0)
     for t in range(T):
-        for h in range(H):
-            R = Rotation.from_rotvec(0.1 * t * rng.normal(size=3)).as_matrix() * (1 + 0.03 * t * h)
-            if h == 0:
-                R = R @ np.array([[1, shear * t, 0], [0, 1, 0], [0, 0, 1]])
-            A[t, h, :, :3] = R
-            A[t, h, :, 3] = c - R @ c + [0.05 * t * h, 0.0, -0.1 * t]
-    pos = np.einsum("nh,thij,nj->tni", W, A[..., :3], rest) + np.einsum("nh,thi->tni", W, A[..., 3])
-    return W, A, pos
+        R = Rotation.from_rotvec([0.2 * t, -0.1 * t, 0.05 * t]).as_matrix()
+        HT[t, H, :, :3] = R @ np.array([[1, shear * t, 0], [0, 1, 0], [0, 0, 1]])
+        HT[t, H, :, 3] = c - HT[t, H, :, :3] @ c + [0.1 * t, 0.0, -0.05 * t * t]
+        HT[t, :H] = handle_scale * t * rng.normal(size=(H, 3, 4))
+    X1 = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    pos = np.einsum("thij,nj->tnhi", HT, X1)
+    pos = pos[:, :, H] + np.einsum("nh,tnhi->tni", W[:, :H], pos[:, :, :H])
+    return W, HT, pos
 
 
-def test_armature_plan_reproduces_rigid_plus_scale_handles_and_refuses_shear():
+def test_lbs_blend_form_is_a_convex_blend_equal_to_the_lbs_motion():
+    rest = np.random.default_rng(2).normal(size=(30, 3))
+    W, HT, pos = lbs_motion(rest)
+    maps, bw, labels = bake.lbs_blend_form(W, HT)
+    assert np.all(bw >= 0) and np.all(bw <= 1) and np.allclose(bw.sum(1), 1.0)
+    assert labels[0] == "constant" and {"00+", "00-"} <= set(labels)
+    blended = bake.armature_deform(rest, bw, maps)
+    assert np.allclose(blended, pos, atol=1e-10)
+
+
+def test_armature_plan_is_exact_for_general_affine_handles_and_refuses_reflections():
     M = np.eye(4)
-    M[:3, :3] = Rotation.from_euler("z", 0.7).as_matrix() * 1.5
+    M[:3, :3] = Rotation.from_euler("z", 0.7).as_matrix() @ np.diag([1.5, 1.0, 0.8])
     M[:3, 3] = [0.0, 1.0, 2.0]
     obj = _cube(1.0, matrix=M)
-    W, A, pos = _lbs_motion(obj)
-    plan, reason = bake.plan_armature(obj, W, A, pos, tolerance=1e-6)
+    W, HT, pos = lbs_motion(obj.rest_world, shear=0.3)  # shear and stretch along turning axes
+    plan, reason = bake.plan_armature(obj, W, HT, pos, tolerance=1e-9)
     assert plan is not None, reason
-    assert plan.max_error < 1e-9 and plan.bone_count == 3
-    assert np.allclose(np.linalg.norm(plan.rotation, axis=-1), 1.0)
-    W, A, pos = _lbs_motion(obj, shear=0.2)
-    plan, reason = bake.plan_armature(obj, W, A, pos)
-    assert plan is None and "not representable" in reason
-    # weights outside [0, 1] (Blender clamps them): refused unless within tolerance
-    W2 = W.copy()
-    W2[:, 0] -= 0.3
-    W2[:, 1] += 0.3
-    pos2 = np.einsum("nh,thij,nj->tni", W2, A[..., :3], obj.rest_world) + np.einsum("nh,thi->tni", W2, A[..., 3])
-    plan, reason = bake.plan_armature(obj, W2, A, pos2)
-    assert plan is None
+    assert plan.max_error < 1e-9 and plan.weights.shape == (8, plan.bone_count)
+    for q in (plan.parent_rotation, plan.child_rotation):
+        assert np.allclose(np.linalg.norm(q, axis=-1), 1.0)
+        assert np.all(np.sum(q[1:] * q[:-1], axis=-1) >= 0)  # one hemisphere frame to frame
+    # a constant handle that mirrors space cannot be a bone
+    HT[:, -1, 0, :3] *= -1
+    plan, reason = bake.plan_armature(obj, W, HT, pos)
+    assert plan is None and "mirrors" in reason
+    plan, reason = bake.plan_armature(obj, W[:5], HT, pos)
+    assert plan is None and "does not fit" in reason
+
+
+def test_continuous_svd_keeps_axes_matched_between_frames():
+    T = 20
+    L = np.stack([Rotation.from_rotvec([0, 0, 0.1 * t]).as_matrix() @ np.diag([1 + 0.05 * np.sin(t), 1.0, 1 - 0.02 * t])
+                  for t in range(T)])
+    U, s, V = bake.continuous_svd(L)
+    assert np.allclose(U * s[:, None, :] @ np.swapaxes(V, 1, 2), L, atol=1e-12)
+    assert np.all(np.linalg.det(U) > 0) and np.all(np.linalg.det(V) > 0)
+    assert np.all(np.abs(np.einsum("tij,tij->tj", V[1:], V[:-1])) > 0.9)  # no axis swaps or flips
 
 
 def test_armature_deform_matches_blender_normalisation_rule():

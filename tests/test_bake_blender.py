@@ -18,6 +18,7 @@ pytestmark = pytest.mark.blender
 TOL = 1e-5  # metres
 SPRING_SMALL = {"anchors": 48, "neighbours": 10, "fixed_springs": 5, "fill_per_anchor": 6}
 MPM_SMALL = {"cells_across": 8}
+LBS_SMALL = {"cubature_points": 40, "mass_samples": 400, "handles": 4, "fit_iterations": 20, "collision_points": 40}
 COLLECTIONS = ("objects", "meshes", "actions", "shape_keys", "armatures", "pointclouds", "materials", "collections")
 
 
@@ -49,6 +50,25 @@ def _synthetic_trajectory(bo, T):
     pos = rest[None] + np.array([0.02, 0.0, -0.03]) * t + 0.01 * np.sin(3 * rest[None] + t)
     pos[0] = rest
     return Trajectory(times=np.arange(T) / 24.0, positions=pos, solver="mpm")
+
+
+def lbs_motion(rest, T=5, H=3, seed=0, shear=0.1, handle_scale=0.05):
+    """A motion in the LBS solver's form: x = A[X;1] + Σ_h w_h D_h [X;1] (weights may be negative)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    W = np.concatenate([rng.normal(0.3, 0.5, (len(rest), H)), np.ones((len(rest), 1))], axis=1)
+    HT = np.zeros((T, H + 1, 3, 4))
+    c = rest.mean(0)
+    for t in range(T):
+        R = Rotation.from_rotvec([0.2 * t, -0.1 * t, 0.05 * t]).as_matrix()
+        HT[t, H, :, :3] = R @ np.array([[1, shear * t, 0], [0, 1, 0], [0, 0, 1]])
+        HT[t, H, :, 3] = c - HT[t, H, :, :3] @ c + [0.1 * t, 0.0, -0.05 * t * t]
+        HT[t, :H] = handle_scale * t * rng.normal(size=(H, 3, 4))
+    X1 = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    pos = np.einsum("thij,nj->tnhi", HT, X1)
+    pos = pos[:, :, H] + np.einsum("nh,tnhi->tni", W[:, :H], pos[:, :, :H])
+    return W, HT, pos
 
 
 def _drive(gen):
@@ -99,10 +119,8 @@ def test_vertex_writers_reproduce_the_trajectory_after_reload_and_clear_restores
         assert not (tmp_path / "scene_unipixie").exists() or not any((tmp_path / "scene_unipixie").iterdir())
 
 
-def test_armature_from_lbs_handles_and_fallback_to_shape_keys(blender, tmp_path):
+def test_armature_from_lbs_handles_after_reload_and_fallback(blender, tmp_path):
     bpy = blender
-    from scipy.spatial.transform import Rotation
-
     from unipixie.core import bake
     from unipixie.core.blender_io import bake as bio
     from unipixie.core.types import Trajectory
@@ -110,20 +128,9 @@ def test_armature_from_lbs_handles_and_fallback_to_shape_keys(blender, tmp_path)
     obj = _transformed_sphere(bpy)
     before = _object_state(bpy, obj)
     bo = bio.read_object(obj)
-    rest = bo.rest_world
-    T, H = 6, 3
-    rng = np.random.default_rng(3)
-    W = rng.random((len(rest), H))
-    W /= W.sum(1, keepdims=True)
-    A = np.zeros((T, H, 3, 4))
-    c = rest.mean(0)
-    for t in range(T):
-        for h in range(H):
-            R = Rotation.from_rotvec(0.15 * t * rng.normal(size=3)).as_matrix() * (1 + 0.02 * t * h)
-            A[t, h, :, :3] = R
-            A[t, h, :, 3] = c - R @ c + [0.03 * t * h, 0, -0.02 * t * t]
-    pos = np.einsum("nh,thij,nj->tni", W, A[..., :3], rest) + np.einsum("nh,thi->tni", W, A[..., 3])
-    traj = Trajectory(np.arange(T) / 24, pos, solver="lbs", handle_transforms=A)
+    T = 6
+    W, HT, pos = lbs_motion(bo.rest_world, T=T, shear=0.2, handle_scale=0.02)
+    traj = Trajectory(np.arange(T) / 24, pos, solver="lbs", handle_transforms=HT)
     opts = bake.BakeOptions(solver="lbs", frames=(1, T))
     rep = _drive(bio.write_result(obj, bo, bake.SimulationResult(traj, skinning_weights=W), opts))
     assert rep.mode == "armature" and rep.armature_error < 1e-6  # float32 trajectory rounding
@@ -132,16 +139,18 @@ def test_armature_from_lbs_handles_and_fallback_to_shape_keys(blender, tmp_path)
     bpy.ops.wm.open_mainfile(filepath=path)
     obj = bpy.data.objects["Ball"]
     rig = [o for o in bpy.data.objects if o.type == "ARMATURE"]
-    assert len(rig) == 1 and len(rig[0].data.bones) == H and rig[0].parent == obj
-    assert obj.modifiers[0].type == "ARMATURE" and len(obj.vertex_groups) == H
+    deform = [b for b in rig[0].data.bones if b.use_deform]
+    assert len(rig) == 1 and rig[0].parent == obj and len(rig[0].data.bones) == 2 * len(deform)
+    assert obj.modifiers[0].type == "ARMATURE" and len(obj.vertex_groups) == len(deform)
     assert _max_error(bio, obj, traj, range(1, T + 1), 1) < TOL
     bio.clear_bake(obj)
-    assert _object_state(bpy, obj) == {**before, "data": _snapshot(bpy)} and _snapshot(bpy) == before["data"]
-    # a sheared handle cannot be a bone: the bake falls back to shape keys and says so
+    assert _object_state(bpy, obj) == before
+    # a mirroring handle cannot be a bone: the bake falls back to shape keys and says so
     bo = bio.read_object(obj)
-    A[:, 0, 0, 1] += 0.4 * np.arange(T)
-    pos = np.einsum("nh,thij,nj->tni", W, A[..., :3], rest) + np.einsum("nh,thi->tni", W, A[..., 3])
-    traj = Trajectory(np.arange(T) / 24, pos, solver="lbs", handle_transforms=A)
+    HT[1:, -1, 0, :3] *= -1
+    X1 = np.concatenate([bo.rest_world, np.ones((len(bo.rest_world), 1))], axis=1)
+    pos = np.einsum("tij,nj->tni", HT[:, -1], X1) + np.einsum("nh,thij,nj->tni", W[:, :-1], HT[:, :-1], X1)
+    traj = Trajectory(np.arange(T) / 24, pos, solver="lbs", handle_transforms=HT)
     rep = _drive(bio.write_result(obj, bo, bake.SimulationResult(traj, skinning_weights=W), opts))
     assert rep.mode == "shape_keys" and any("instead of an armature" in n for n in rep.notes)
     assert _max_error(bio, obj, traj, range(1, T + 1), 1) < TOL
@@ -207,6 +216,29 @@ def test_mpm_bake_with_mesh_cache_and_particle_object(blender, tmp_path):
     bio.clear_bake(obj)
     assert _snapshot(bpy) == before
     assert not any(__import__("os").path.exists(f) for f in files)
+
+
+def test_lbs_bake_end_to_end_as_an_armature(blender, tmp_path):
+    bpy = blender
+    from unipixie.core import bake
+    from unipixie.core.blender_io import bake as bio
+
+    obj = _transformed_sphere(bpy)
+    bpy.ops.mesh.primitive_plane_add(size=3, location=(0, 0, 0.3))
+    obj.unipixie.bake_ground = bpy.context.active_object
+    before = _snapshot(bpy)
+    opts = bake.BakeOptions(solver="lbs", frames=(1, 10), solver_settings=LBS_SMALL,
+                            material=bake.HomogeneousSource(E=3e4, density=500))
+    rep = bio.bake_object(obj, opts, bio.scenario_from_scene(obj))
+    traj = rep.trajectory
+    assert rep.mode == "armature", rep.notes
+    assert traj.positions[-1, :, 2].min() < traj.positions[0, :, 2].min() - 0.05  # it fell onto the ground
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "lbs.blend"))
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "lbs.blend"))
+    obj = bpy.data.objects["Ball"]
+    assert _max_error(bio, obj, traj, (1, 3, 6, 10), 1) < TOL
+    bio.clear_bake(obj)
+    assert _snapshot(bpy) == before
 
 
 # --------------------------------------------------------------------------- operators, undo, Esc

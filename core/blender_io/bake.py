@@ -451,14 +451,13 @@ def _edit_mode(arm_obj):
     view_layer.objects.active = prev_active
 
 
-def write_armature(obj, bo: BakeObject, plan: core_bake.ArmaturePlan, local_maps: np.ndarray, frames: np.ndarray,
-                   interpolation: str, record: WriteRecord) -> Iterator[float]:
-    """An armature object (child of ``obj``, so it follows the object) with one bone per handle, a vertex
-    group per bone holding the skinning weights, an Armature modifier first in ``obj``'s stack, and
-    the bones keyed every frame (location, quaternion rotation, scale; linear blending).
-
-    The pose channels are recomputed from the bones' actual rest matrices as Blender stored them, so
-    the rounding of head/tail/roll does not add error.
+def write_armature(obj, bo: BakeObject, plan: core_bake.ArmaturePlan, frames: np.ndarray, interpolation: str,
+                   record: WriteRecord) -> Iterator[float]:
+    """An armature object (child of ``obj``, so it follows the object) with one parent/child bone chain
+    per blend bone (:class:`~unipixie.core.bake.ArmaturePlan`), a vertex group per deforming bone
+    holding the weights, an Armature modifier first in ``obj``'s stack (linear blending), and the
+    bones keyed at every frame.  The channels are recomputed from the bone heads as Blender stored
+    them, so the rounding of the rest pose adds no error.
     """
     name = _unique(bpy.data.objects.keys(), f"{PREFIX} {obj.name} rig")
     arm = bpy.data.armatures.new(name)
@@ -472,32 +471,41 @@ def write_armature(obj, bo: BakeObject, plan: core_bake.ArmaturePlan, local_maps
     arm.display_type = "STICK"
     arm_obj.show_in_front = True
     B = plan.bone_count
-    existing_groups = {g.name for g in obj.vertex_groups}
-    bone_names = [_unique(existing_groups, f"{PREFIX} handle {h:02d}") for h in range(B)]
-    from mathutils import Matrix
-
+    taken = {g.name for g in obj.vertex_groups}
+    deform_names = []
+    for b in range(B):
+        n = _unique(taken, f"{PREFIX} handle {plan.labels[b]}")
+        taken.add(n)
+        deform_names.append(n)
     with _edit_mode(arm_obj):
-        for h in range(B):
-            eb = arm.edit_bones.new(bone_names[h])
-            eb.head = (0.0, 0.0, 0.0)
-            eb.tail = (0.0, plan.bone_length, 0.0)
-            eb.matrix = Matrix(plan.rest[h].tolist())
-            eb.use_deform = True
-    bone_names = [b.name for b in arm.bones]
+        for b in range(B):
+            head = tuple(float(v) for v in plan.heads[b])
+            parent = arm.edit_bones.new(f"{deform_names[b]} (stretch)")
+            parent.head, parent.tail, parent.roll = head, (head[0], head[1] + plan.bone_length, head[2]), 0.0
+            parent.use_deform = False
+            child = arm.edit_bones.new(deform_names[b])
+            child.head, child.tail, child.roll = head, (head[0], head[1] + 0.6 * plan.bone_length, head[2]), 0.0
+            child.parent = parent
+            child.use_connect = False
+            child.use_inherit_rotation = True
+            child.inherit_scale = "FULL"
+            child.use_local_location = True
+            child.use_deform = True
+            deform_names[b] = child.name
     yield 0.2
-    rest = np.array([np.array(arm.bones[n].matrix_local, dtype=np.float64) for n in bone_names])
-    location, quat, scale = _pose_channels(local_maps, rest)
-    # vertex groups with the skinning weights
-    for h, bname in enumerate(bone_names):
+    heads = np.array([np.array(arm.bones[n].head_local, dtype=np.float64) for n in deform_names])
+    loc, Uq, scale, Vq = core_bake.chain_channels(plan.local_maps, heads)
+    for b, bname in enumerate(deform_names):
         vg = obj.vertex_groups.new(name=bname)
         record.vertex_groups.append(vg.name)
-        w = plan.weights[:, h]
+        w = plan.weights[:, b]
         nz = np.nonzero(w > 0)[0]
-        ones = nz[w[nz] >= 1.0]
-        if len(ones):
-            vg.add(ones.tolist(), 1.0, "REPLACE")
+        full = nz[w[nz] >= 1.0]
+        if len(full):
+            vg.add(full.tolist(), 1.0, "REPLACE")
         add = vg.add
-        for i, wi in zip(nz[w[nz] < 1.0].tolist(), w[nz][w[nz] < 1.0].tolist()):
+        part = nz[w[nz] < 1.0]
+        for i, wi in zip(part.tolist(), w[part].tolist()):
             add((i,), wi, "REPLACE")  # Blender has no bulk setter for vertex-group weights
     yield 0.5
     mod = obj.modifiers.new(name=_unique({m.name for m in obj.modifiers}, f"{PREFIX} Armature"), type="ARMATURE")
@@ -511,29 +519,19 @@ def write_armature(obj, bo: BakeObject, plan: core_bake.ArmaturePlan, local_maps
     action, slot, bag = _layered_action(f"{PREFIX} {obj.name} rig", "OBJECT", arm_obj.name)
     record.actions.append(action.name)
     f = frames.astype(np.float64)
-    for h, bname in enumerate(bone_names):
-        pb = arm_obj.pose.bones[bname]
-        pb.rotation_mode = "QUATERNION"
-        base = f'pose.bones["{bpy.utils.escape_identifier(bname)}"]'
-        for prop, values in (("location", location[:, h]), ("rotation_quaternion", quat[:, h]), ("scale", scale[:, h])):
-            for i in range(values.shape[1]):
-                fc = bag.fcurves.new(f"{base}.{prop}", index=i, group_name=bname)
-                _set_keys(fc, f, values[:, i], interpolation)
+    for b, child in enumerate(deform_names):
+        parent = arm.bones[child].parent.name
+        for bname, channels in ((parent, (("location", loc[:, b]), ("rotation_quaternion", Uq[:, b]),
+                                          ("scale", scale[:, b]))),
+                                (child, (("rotation_quaternion", Vq[:, b]),))):
+            arm_obj.pose.bones[bname].rotation_mode = "QUATERNION"
+            base = f'pose.bones["{bpy.utils.escape_identifier(bname)}"]'
+            for prop, values in channels:
+                for i in range(values.shape[1]):
+                    fc = bag.fcurves.new(f"{base}.{prop}", index=i, group_name=bname)
+                    _set_keys(fc, f, values[:, i], interpolation)
     _assign_action(arm_obj, action, slot)
     yield 1.0
-
-
-def _pose_channels(local_maps: np.ndarray, rest: np.ndarray):
-    """(T, B, 4, 4) local handle maps and (B, 4, 4) bone rest matrices → location, quaternion, scale channels."""
-    rest_inv = np.linalg.inv(rest)
-    G = rest_inv[None] @ local_maps @ rest[None]
-    Q, P = core_bake.polar_decompose(G[..., :3, :3])
-    scale = np.diagonal(P, axis1=-2, axis2=-1).copy()
-    quat = core_bake._quat_from_matrix(Q)
-    for t in range(1, quat.shape[0]):
-        flip = np.sum(quat[t] * quat[t - 1], axis=-1) < 0
-        quat[t, flip] *= -1.0
-    return G[..., :3, 3].copy(), quat, scale
 
 
 # --------------------------------------------------------------------------- particles (MPM)
@@ -769,7 +767,6 @@ def write_result(obj, bo: BakeObject, result: SimulationResult, options: BakeOpt
     if bake_record(obj) is not None:
         clear_bake(obj)
     plan = None
-    local_maps = None
     if mode == "armature":
         if traj.handle_transforms is None or result.skinning_weights is None:
             reason = "the LBS run returned no handle transforms / vertex weights"
@@ -780,17 +777,11 @@ def write_result(obj, bo: BakeObject, result: SimulationResult, options: BakeOpt
             fallback = core_bake.vertex_output(bo.vertex_count, len(frames), me.shape_keys is not None, me.users > 1, [])
             notes.append(f"LBS handles baked per vertex ({fallback.replace('_', ' ')}) instead of an armature: {reason}")
             mode = fallback
-        else:
-            S = bo.world_from_local
-            A4 = np.zeros(traj.handle_transforms.shape[:2] + (4, 4))
-            A4[..., :3, :] = traj.handle_transforms
-            A4[..., 3, 3] = 1.0
-            local_maps = np.linalg.inv(S) @ A4 @ S
     record = WriteRecord(obj.name)
     done = False
     try:
         if mode == "armature":
-            for f in write_armature(obj, bo, plan, local_maps, frames, options.interpolation, record):
+            for f in write_armature(obj, bo, plan, frames, options.interpolation, record):
                 yield 0.9 * f, "writing the armature"
         else:
             local = core_bake.trajectory_to_local(bo, traj.positions)
