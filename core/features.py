@@ -57,6 +57,20 @@ def run_job(job, progress=None):
         job.close()
 
 
+def rescaled(job, start: float, span: float):
+    """A job whose fractions ``f`` are reported as ``start + span * f`` (for use with ``yield from``);
+    closing it closes ``job``."""
+    try:
+        while True:
+            try:
+                fraction, status = next(job)
+            except StopIteration as stop:
+                return stop.value
+            yield start + span * float(fraction), status
+    finally:
+        job.close()
+
+
 @dataclass
 class FeatureOptions:
     """What to compute.
@@ -220,14 +234,7 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
             gpath.unlink(missing_ok=True)
 
     t = time.perf_counter()
-    render_fraction = 0.75
-    stage = render_stage(objects, options, fingerprint)
-    try:
-        while True:
-            fraction, status = next(stage)
-            yield 0.02 + render_fraction * fraction, status
-    except StopIteration as stop:
-        views, vpath = stop.value
+    views, vpath = yield from rescaled(render_stage(objects, options, fingerprint), 0.02, 0.75)
     timings["render"] = time.perf_counter() - t
 
     yield 0.8, "occupancy"

@@ -195,9 +195,13 @@ def test_blend_files_need_an_object_name_when_they_hold_several(blender, tmp_pat
     from unipixie.core.features import FeatureOptions, features_for_file
 
     bpy.ops.mesh.primitive_cube_add(location=(0, 0, 0))
-    bpy.context.active_object.name = "Crate"
+    crate = bpy.context.active_object
+    crate.name = "Crate"
+    crate.modifiers.new("round", "SUBSURF").render_levels = 2        # modifiers are applied
     bpy.ops.mesh.primitive_ico_sphere_add(location=(4, 0, 0))
     bpy.context.active_object.name = "Ball"
+    bpy.ops.object.empty_add(location=(0, 7, 0))
+    crate.parent = bpy.context.active_object                          # and parents' transforms
     path = tmp_path / "two.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -206,7 +210,8 @@ def test_blend_files_need_an_object_name_when_they_hold_several(blender, tmp_pat
     with pytest.raises(UserError, match="no object named 'Lamp'"):
         features_for_file(path, "Lamp", options=FeatureOptions(**FAST))
     result = features_for_file(path, "Crate", options=FeatureOptions(**FAST))
-    assert result.grid.occupancy.sum() == 64 ** 3                     # a cube fills the normalised cube
+    assert 0.35 * 64 ** 3 < result.grid.occupancy.sum() < 0.6 * 64 ** 3  # subdivided: round (sphere: 0.52)
+    assert np.allclose(result.normalisation.centre, (0, 7, 0), atol=1e-4)
     assert len(bpy.data.objects) == 0                                 # nothing left behind
 
 
@@ -267,3 +272,22 @@ def test_panel_operators_leave_cached_files_and_properties(blender):
     bpy.ops.object.select_all(action="DESELECT")
     bpy.context.view_layer.objects.active = None
     assert not bpy.ops.unipixie.compute_features.poll()
+
+
+def test_benchmark_views_file_round_trips_and_is_checked(tmp_path):
+    from unipixie.core.benchmarks import features as bench
+    from unipixie.core.types import Views
+
+    rng = np.random.default_rng(0)
+    depth = np.where(rng.random((2, 16, 16)) > 0.5, 2.5, np.inf).astype(np.float32)
+    views = Views(rng.random((2, 16, 16, 3)), depth, np.tile(np.eye(3), (2, 1, 1)), np.tile(np.eye(4), (2, 1, 1)),
+                  meta={"engine": "cycles"})
+    verts, faces = rng.random((10, 3)), rng.integers(0, 10, (6, 3))
+    path = bench.save_bench_views(tmp_path / "bv.npz", views, verts, faces)
+    again, v2, f2 = bench.load_bench_views(path)
+    assert np.abs(again.images - views.images).max() <= 0.5 / 255 + 1e-6        # stored as uint8
+    assert np.array_equal(again.depth, views.depth) and np.array_equal(f2, faces)
+    assert np.allclose(v2, verts, atol=1e-6) and again.meta == {"engine": "cycles"}
+    views.save(tmp_path / "plain.npz")
+    with pytest.raises(UserError, match="not a views file of 'unipixie bench features"):
+        bench.load_bench_views(tmp_path / "plain.npz")

@@ -104,6 +104,18 @@ def _as_list(objects) -> list:
     return list(objects)
 
 
+def _depsgraph_of(obj):
+    """The evaluated dependency graph of a scene that holds ``obj`` (the current view layer when it shows
+    it), so modifiers and parents are applied also to objects living only in a temporary scene."""
+    context = bpy.context
+    if context.view_layer is not None and context.view_layer.objects.get(obj.name) == obj:
+        return context.evaluated_depsgraph_get()
+    for scene in obj.users_scene:
+        with context.temp_override(scene=scene, view_layer=scene.view_layers[0]):
+            return bpy.context.evaluated_depsgraph_get()
+    raise UserError(f"object {obj.name!r} is in no scene; link it to a scene to render it")
+
+
 @contextlib.contextmanager
 def evaluated_meshes(objects):
     """Yield [(object, mesh copy with modifiers applied and effective materials, (4, 4) world matrix)].
@@ -111,12 +123,12 @@ def evaluated_meshes(objects):
     The mesh copies are temporary data-blocks, removed on exit.
     """
     objs = geometry_objects(_as_list(objects))
-    depsgraph = bpy.context.evaluated_depsgraph_get()
     out = []
     try:
         for obj in objs:
-            evaluated = obj.evaluated_get(depsgraph)
-            mesh = bpy.data.meshes.new_from_object(evaluated, preserve_all_data_layers=True, depsgraph=depsgraph)
+            evaluated = obj.evaluated_get(_depsgraph_of(obj))
+            mesh = bpy.data.meshes.new_from_object(evaluated, preserve_all_data_layers=True,
+                                                   depsgraph=_depsgraph_of(obj))
             for i, slot in enumerate(obj.material_slots):
                 if i < len(mesh.materials):
                     mesh.materials[i] = slot.material          # object-linked materials included
