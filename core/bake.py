@@ -1118,10 +1118,19 @@ def _safe_name(name: str) -> str:
 
 def expand_jobs(scene: str, objects: Sequence[str], out: str, *, solver: str = "mpm",
                 alphas: Sequence[Optional[float]] = (None,), frame_ranges: Sequence[Optional[FrameRange]] = (None,),
-                **common) -> list[BakeJob]:
-    """The batch objects × frame ranges × α values, in that order (a stable order: shards rely on it)."""
+                resolve: Optional[Callable[[str], Sequence[str]]] = None, **common) -> list[BakeJob]:
+    """The batch objects × frame ranges × α values, in that order (a stable order: shards rely on it).
+
+    resolve: ``resolve(scene) -> object names`` to expand wildcards (``Rock*``) now, so that each
+    object gets its own job and output name; without it a pattern stays one job (expanded when the
+    scene is opened) and may not be combined with ``{object}`` in the output name.
+    """
     if not objects:
         raise UserError("no object to bake: give --object NAME (repeatable, wildcards allowed)")
+    if resolve is not None:
+        objects = select_objects(objects, list(resolve(str(scene))))
+    elif "{object}" in str(out) and any(any(c in o for c in "*?[") for o in objects):
+        raise UserError("a wildcard object name with {object} in the output name needs the scene's object list")
     jobs = []
     for obj in objects:
         for fr in frame_ranges:
@@ -1189,12 +1198,13 @@ def select_objects(patterns: Sequence[str], available: Sequence[str]) -> list[st
     return chosen
 
 
-def load_manifest(path) -> list[BakeJob]:
+def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None) -> list[BakeJob]:
     """Read a job manifest (format ``unipixie.bake-manifest/1``; schema in ``docs/baking.md``).
 
     Relative paths (scene, out, material files) are relative to the manifest's folder.  A job may
     name several objects (``"objects": [...]``, wildcards resolved when the scene is opened) and
     may give ``"alpha"`` or ``"frames"`` as lists (a batch).  Errors name the job and key.
+    ``resolve``: see :func:`expand_jobs`.
     """
     path = Path(path)
     if not path.is_file():
@@ -1264,7 +1274,7 @@ def load_manifest(path) -> list[BakeJob]:
                       solver_settings=d.get("settings"), scenario=scen)
         try:
             new = expand_jobs(scene, objects, str(_rel(base, d["out"])), solver=str(d.get("solver", "mpm")),
-                              alphas=alphas, frame_ranges=frame_ranges, **common)
+                              alphas=alphas, frame_ranges=frame_ranges, resolve=resolve, **common)
         except UserError as exc:
             raise UserError(f"{where}: {exc}") from None
         jobs.extend(new)

@@ -495,3 +495,38 @@ def test_cli_errors_are_one_line(blender, tmp_path):
     code, err = run(str(scene), "--object", "CubeA", "--E", "1e5", "--frames", "9-2", "--out", str(tmp_path / "o.blend"))
     assert code == 2 and len(err) == 1 and "empty" in err[0]
     assert not (tmp_path / "o.blend").exists()
+
+
+def test_bake_through_the_installed_extension_module(blender, tmp_path):
+    """``blender -b --python-expr "import bl_ext.user_default.unipixie.cli as c; c.main()" -- bake ...``:
+    the same command through the installed extension (bpy module in a child process, throw-away user dir)."""
+    import os
+    import textwrap
+
+    bpy = blender
+    from unipixie.core import extension
+
+    scene = tmp_path / "two.blend"
+    _scene_with_two_cubes(bpy, scene)
+    zip_path = extension.build(tmp_path / "dist")
+    script = tmp_path / "run.py"
+    script.write_text(textwrap.dedent("""
+        import sys, bpy
+        bpy.ops.extensions.package_install_files(filepath=sys.argv[1], repo="user_default", enable_on_install=True)
+        import bl_ext.user_default.unipixie.cli as c
+        sys.argv = ["blender", "--", *sys.argv[2:]]
+        sys.exit(c.main())
+    """))
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user")}
+
+    def run(*args):
+        return subprocess.run([sys.executable, str(script), str(zip_path), "bake", *args], capture_output=True,
+                              text=True, env=env, timeout=300)
+
+    res = run(str(scene), "--object", "Cube*", "--alpha", "0,1", "--out", str(tmp_path / "o_{object}_{alpha}.blend"),
+              "--shard", "1/2", "--list")
+    assert res.returncode == 0, res.stderr[-2000:]
+    listed = res.stdout.split("output file(s)")[1]
+    assert "2 of 4 job(s)" in res.stdout and "o_CubeA_1.blend" in listed and "o_CubeB_1.blend" in listed
+    res = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
+    assert res.returncode == 2 and "needs the UniPixie model" in res.stderr and "Traceback" not in res.stderr

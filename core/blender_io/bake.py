@@ -922,6 +922,23 @@ def options_for_job(job: BakeJob, obj, scene) -> tuple[BakeOptions, object]:
     return options, scenario
 
 
+def blend_object_names(path) -> list[str]:
+    """Names of the objects stored in a .blend file, read without opening it (the current file is untouched)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"scene file not found: {path}")
+    if path.suffix.lower() != ".blend":
+        raise UserError(f"{path}: the scene must be a .blend file")
+    if bpy.data.filepath and os.path.samefile(bpy.data.filepath, path):
+        return [o.name for o in bpy.data.objects]  # Blender cannot "load from" the open file
+    try:
+        with bpy.data.libraries.load(str(path.resolve())) as (data_from, _data_to):
+            names = list(data_from.objects)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: not a readable .blend file ({exc})") from None
+    return names
+
+
 def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print) -> list[BakeReport]:
     """Run bake jobs: for each (scene, out) group open the scene, bake its objects, save ``out``.
 

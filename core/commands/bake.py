@@ -129,7 +129,7 @@ def jobs_from_args(args):
     if args.manifest:
         if args.scene or args.object or args.out:
             raise UserError("with --manifest, give the scenes, objects and outputs in the manifest, not on the command line")
-        jobs = bake.load_manifest(args.manifest)
+        jobs = bake.load_manifest(args.manifest, resolve=_object_names)
         if args.device:
             for j in jobs:
                 j.device = args.device
@@ -155,7 +155,13 @@ def jobs_from_args(args):
                             alphas=args.alpha or [None], frame_ranges=frame_ranges, effects=list(args.effects),
                             device=args.device or "cpu", material=material, output=args.output,
                             interpolation=args.interpolation, particles=args.particles,
-                            solver_settings=args.settings, scenario=_scenario_overrides(args))
+                            solver_settings=args.settings, scenario=_scenario_overrides(args), resolve=_object_names)
+
+
+def _object_names(scene: str):
+    from ..blender_io.bake import blend_object_names
+
+    return blend_object_names(scene)
 
 
 def run(args) -> int:
