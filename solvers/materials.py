@@ -10,8 +10,9 @@ Constitutive laws (MPM):
 * ``fixed_corotated``: Ψ = μ‖F − R‖² + λ/2 (J − 1)² (Stomakhin et al. 2012).
 * ``stvk_hencky``: St. Venant–Kirchhoff on the Hencky strain ε = log Σ,
   Ψ = μ tr(ε²) + λ/2 tr(ε)²; used with von Mises (metal) and Drucker–Prager (sand).
-* ``weakly_compressible``: pressure only, p = K (1 − J) with bulk modulus
-  K = E / (3 (1 − 2ν)) (fluid); the deviatoric part is reset every step.
+* ``weakly_compressible``: pressure only, p = K (1 − J) ≥ 0 with bulk modulus
+  K = E / (3 (1 − 2ν)) (fluid); the deviatoric part is reset every step and J is capped
+  at 1 (a free-surface fluid carries no tension).
 
 Plasticity (return mapping on the singular values of the elastic deformation gradient):
 

@@ -245,8 +245,9 @@ def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
             J = wp.determinant(Fn)
             tau = 2.0 * mu * (Fn - R) @ wp.transpose(Fn) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
         elif law.elastic == LAW_WEAKLY_COMPRESSIBLE:
-            J = wp.max(wp.determinant(Fn), MIN_FLUID_J)
-            Fn = wp.identity(n=3, dtype=float) * wp.pow(J, 1.0 / 3.0)  # forget shear: a fluid
+            # no tension (p >= 0: a free-surface fluid pulls nothing) and no memory of shear or expansion
+            J = wp.clamp(wp.determinant(Fn), MIN_FLUID_J, 1.0)
+            Fn = wp.identity(n=3, dtype=float) * wp.pow(J, 1.0 / 3.0)
             bulk = lam + 2.0 / 3.0 * mu
             tau = wp.identity(n=3, dtype=float) * (bulk * J * (J - 1.0))
         else:
@@ -454,6 +455,8 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
     sv = wp.vec3(0.0)
     Mdd = wp.mat33(0.0)
     Mvd = wp.mat33(0.0)
+    vlo = wp.vec3(3.0e38)
+    vhi = wp.vec3(-3.0e38)
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -463,11 +466,14 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                 gv = grid_v[node]
                 vi = wp.vec3(gv[0], gv[1], gv[2])
                 wm = weight * gv[3]
-                W = W + wm
-                sd = sd + wm * dpos
-                sv = sv + wm * vi
-                Mdd = Mdd + wm * wp.outer(dpos, dpos)
-                Mvd = Mvd + wm * wp.outer(vi, dpos)
+                if wm > 0.0:
+                    W = W + wm
+                    sd = sd + wm * dpos
+                    sv = sv + wm * vi
+                    Mdd = Mdd + wm * wp.outer(dpos, dpos)
+                    Mvd = Mvd + wm * wp.outer(vi, dpos)
+                    vlo = wp.min(vlo, vi)
+                    vhi = wp.max(vhi, vi)
     t = tid - n_particles
     vt = tv[t]
     if W > 0.0:
@@ -476,7 +482,14 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         cov = Mdd - W * wp.outer(dbar, dbar) + wp.identity(n=3, dtype=float) * (
             TRACKED_FIT_REGULARISATION * W * dx * dx)
         grad = (Mvd - W * wp.outer(vbar, dbar)) @ wp.inverse(cov)
-        vt = vbar - grad @ dbar  # the fitted field at the tracked point (offset 0)
+        fit = vbar - grad @ dbar  # the fitted field at the tracked point (offset 0)
+        # guard against ill-conditioned fits (few massive nodes, e.g. in a thin film): stay within the node
+        # velocities' range widened by that range on each side (a single node gives its own velocity)
+        spread = vhi - vlo
+        fit = wp.min(wp.max(fit, vlo - spread), vhi + spread)
+        vt = vbar
+        if wp.isfinite(fit):
+            vt = fit
     xn = xp + dt * vt
     if has_ground != 0 and xn[2] < ground_z:
         xn = wp.vec3(xn[0], xn[1], ground_z)

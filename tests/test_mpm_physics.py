@@ -245,3 +245,63 @@ def test_cantilever_bending_frequency_and_sag():
     measured_f = 1.0 / period_from_crossings(frames, deflection)
     assert abs(measured_f / f1 - 1.0) < 0.10, (measured_f, f1)
     assert abs(-deflection.mean() / sag - 1.0) < 0.15, (-deflection.mean(), sag)
+
+
+# --------------------------------------------------------------------------- 9. material classes
+_COLUMN_DX = 0.025
+_COLUMN = (3, 3, 6)  # cells: 0.075 × 0.075 × 0.15 m, 432 particles
+_CLASS_CASES = {
+    # class: (E Pa, nu, density kg/m³, initial downward speed m/s, effects)
+    "jelly": (1e5, 0.3, 1000.0, 0.0, []),
+    "metal": (1e7, 0.3, 3000.0, 0.0, []),
+    "sand": (1e6, 0.3, 1600.0, 0.0, [fx.make("ground_friction", mu=0.5)]),  # a heap needs a rough base
+    "plasticine": (1e5, 0.35, 1500.0, 2.0, []),  # thrown at the ground
+    "fluid": (1e5, 0.3, 1000.0, 0.0, []),
+    "snow": (1e5, 0.25, 400.0, 0.0, []),
+    "stationary": (1e8, 0.3, 1000.0, 0.0, []),
+}
+
+
+def _drop(cls):
+    """A column of one class dropped from 2.5 cm onto the ground; 1 s; returns the trajectory."""
+    E, nu, rho, speed, effects = _CLASS_CASES[cls]
+    width = _COLUMN[0] * _COLUMN_DX
+    body = block(_COLUMN, _COLUMN_DX, origin=(-width / 2, -width / 2, 0.025))
+    frames = np.linspace(0.0, 1.0, 21)
+    sim = prepare(body, frames, E=E, nu=nu, density=rho, cls=cls,
+                  sc=scenario((0, 0, -G), ground=0.0, initial_velocity=[0.0, 0.0, -speed]))
+    return sim.run(effects, particle_states=True)
+
+
+@pytest.mark.parametrize("cls", list(_CLASS_CASES))
+def test_material_class_one_second_drop(cls):
+    """Each class survives a 1 s drop and behaves as its class should (thresholds in the assertions):
+    jelly and metal keep their shape (metal to 3 %), plasticine keeps a permanent squash, snow compacts
+    (plastic volume ratio Jp < 0.98 somewhere), sand collapses into a heap on a rough ground, the fluid
+    spreads into a thin layer, stationary material does not move at all."""
+    traj = _drop(cls)
+    first, last = traj.particle_positions[0].astype(np.float64), traj.particle_positions[-1].astype(np.float64)
+    assert np.all(np.isfinite(traj.particle_positions))
+    assert last[:, 2].min() >= 0.0  # above the ground
+    height0, width0 = np.ptp(first[:, 2]), np.ptp(first[:, 0])
+    height, width = np.ptp(last[:, 2]), max(np.ptp(last[:, 0]), np.ptp(last[:, 1]))
+    plastic = traj.particle_attributes["plastic_state"][-1]
+    if cls == "jelly":
+        assert abs(height / height0 - 1) < 0.15 and abs(width / width0 - 1) < 0.15
+        assert last[:, 2].mean() < first[:, 2].mean()  # came down
+    elif cls == "metal":
+        assert abs(height / height0 - 1) < 0.03 and abs(width / width0 - 1) < 0.03
+    elif cls == "plasticine":
+        assert height < 0.95 * height0 and width > 1.05 * width0 and plastic.max() > 0.05
+        assert width < 3 * width0  # deformed, not flowing
+    elif cls == "snow":
+        assert plastic.min() < 0.98 and height > 0.7 * height0
+    elif cls == "sand":
+        assert height < 0.6 * height0 and width > 1.5 * width0  # collapsed and spread ...
+        assert height > 0.15 * width  # ... into a heap with a slope, not a film
+    elif cls == "fluid":
+        assert height < 0.1 * height0 and width > 5 * width0
+    elif cls == "stationary":
+        assert np.array_equal(first, last)
+    else:  # pragma: no cover - a class added to the registry needs its expectation here
+        raise AssertionError(cls)
