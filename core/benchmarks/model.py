@@ -1,0 +1,160 @@
+"""``unipixie bench model``: inference time of all three heads at 64³ and training throughput.
+
+Inference: the model at the requested preset (default: the paper's sizes) with random weights (the
+timing does not depend on the weights), a procedural object with ~30k occupied voxels on a 64³ grid
+and D = 768 random features; all three heads with 15 Heun steps, at 1 α and at 11 α's (one batched
+pass each).  On CUDA also the peak GPU memory.  Training: samples/s of the full objective (all heads,
+latent consistency term) on a synthetic 64³ dataset of that object, in one process and, on a machine
+with several GPUs, with torchrun over ``--ddp-procs`` GPUs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+HELP = "material model: inference time (all heads, 1 and 11 alphas, 64^3) and training samples/s"
+
+
+def add_arguments(p):
+    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
+    p.add_argument("--preset", default="paper", help="model size preset (default paper)")
+    p.add_argument("--voxels", type=int, default=30000, help="occupied voxels of the test object (default 30000)")
+    p.add_argument("--feature-dim", type=int, default=768, help="feature width D (default 768, CLIP ViT-B/16)")
+    p.add_argument("--runs", type=int, default=None, help="timed runs per case (default 5 on GPU, 1 on CPU)")
+    p.add_argument("--train-steps", type=int, default=None, help="training steps to time (default 20 GPU / 4 CPU)")
+    p.add_argument("--train-batch", type=int, default=None, help="objects per GPU per step (default 2 GPU / 1 CPU)")
+    p.add_argument("--ddp-procs", type=int, default=None, help="also time torchrun with this many GPUs (default: all, if > 1)")
+    p.add_argument("--skip-train", action="store_true", help="only time inference")
+
+
+def _cpu_name() -> str:
+    name = platform.processor() or "CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{name} ({os.cpu_count()} cores)"
+
+
+def _device_name(dev) -> str:
+    import torch
+
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else _cpu_name()
+
+
+def _make_dataset(root: Path, resolution: int, voxels: int, feature_dim: int, anchors: int, count: int):
+    from ...training.synthetic import make_sample, procedural_occupancy
+
+    occ = procedural_occupancy(resolution, voxels)
+    root.mkdir(parents=True, exist_ok=True)
+    for i in range(count):
+        s = make_sample(i, resolution, feature_dim, anchors, feature_model="bench-random", parts=3, occupancy=occ)
+        s.save(root / f"{s.object_id}.npz", compress=False)
+    return occ
+
+
+def run(args) -> list[dict]:
+    import numpy as np
+    import torch
+
+    from ..benchmarks import median_time
+    from ..model.config import preset
+    from ..model.inference import Predictor, resolve_torch_device
+    from ..model.network import UniPixieModel
+    from ..types import FeatureGrid, GridGeometry
+    from ...training.synthetic import procedural_occupancy
+
+    dev = resolve_torch_device(args.device)
+    gpu = dev.type == "cuda"
+    runs = args.runs or (5 if gpu else 1)
+    R = 64
+    cfg = preset(args.preset, feature_model="bench-random", feature_dim=args.feature_dim, grid_resolution=R)
+    torch.manual_seed(0)
+    model = UniPixieModel(cfg)
+    # random, non-zero weights everywhere (AdaLN-Zero layers start at zero; a trained model's are not)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if p.dim() >= 2 and torch.count_nonzero(p) == 0:
+                p.normal_(0.0, 0.02)
+    predictor = Predictor(model, dev)
+    occ = procedural_occupancy(R, args.voxels)
+    K = int(occ.sum())
+    rng = np.random.default_rng(0)
+    grid = FeatureGrid(GridGeometry(R, [-0.5] * 3, 1.0 / R), occ, rng.normal(size=(K, args.feature_dim)).astype(np.float16),
+                       feature_model="bench-random")
+    name = _device_name(dev)
+    tokens = int(predictor.model.layout(__import__("unipixie.core.model.layout", fromlist=["VoxelBatch"]).VoxelBatch.from_grids(
+        [occ], [np.zeros((K, 1), np.float32)])).token_valid.sum())
+    params = predictor.model.parameter_count()["total"]
+    base = f"{args.preset} sizes ({params / 1e6:.0f}M params), 64^3, {K} voxels, {tokens} patch tokens, D={args.feature_dim}"
+    print(f"model: {base}; device {name}; {runs} run(s) per case", flush=True)
+    results = []
+
+    def timed(alphas, heads, metric, label):
+        if gpu:
+            torch.cuda.synchronize(dev)
+            torch.cuda.reset_peak_memory_stats(dev)
+        med, times = median_time(lambda: predictor.predict(grid, alphas, heads=heads), runs=runs, warmup=1)
+        entry = {"case": f"{label}, {base}", "device": name, "metric": metric, "value": med, "runs": runs,
+                 "unit": "s", "times": times}
+        results.append(entry)
+        print(f"  {metric}: {med:.3f} s", flush=True)
+        if gpu:
+            peak = torch.cuda.max_memory_allocated(dev) / 2 ** 30
+            results.append({"case": f"{label}, {base}", "device": name, "metric": f"peak_gpu_memory_gib_{metric}",
+                            "value": peak, "runs": runs, "unit": "GiB"})
+
+    heads = ("mpm", "lbs", "spring_mass")
+    timed([0.5], ("mpm",), "inference_s_mpm_1alpha", "MPM head, 1 alpha, 15 Heun steps")
+    timed([0.5], heads, "inference_s_all_heads_1alpha", "all heads, 1 alpha, 15 Heun steps")
+    timed(list(np.linspace(0, 1, 11)), heads, "inference_s_all_heads_11alpha", "all heads, 11 alphas, 15 Heun steps")
+    del predictor, model
+    if gpu:
+        torch.cuda.empty_cache()
+    if args.skip_train:
+        return results
+
+    from ...training.train import TrainSettings, train
+
+    steps = args.train_steps or (20 if gpu else 4)
+    per_gpu = args.train_batch or (2 if gpu else 1)
+    with tempfile.TemporaryDirectory(prefix="unipixie-bench-model-") as tmp:
+        data = Path(tmp) / "data"
+        _make_dataset(data, R, args.voxels, args.feature_dim, cfg.spring_anchors, count=max(4, 2 * per_gpu))
+        s = TrainSettings(data=str(data), out=str(Path(tmp) / "run1"), steps=steps, batch=per_gpu, preset=args.preset,
+                          device=str(dev), save_every=10 ** 9, log_every=10 ** 9, warmup=1, lr=5e-5)
+        stats = train(s)
+        label = (f"training, all heads + consistency, batch {per_gpu}, {stats['precision']}, 1 process, "
+                 f"{steps - 2} timed steps")
+        results.append({"case": f"{label}, {base}", "device": name, "metric": "train_samples_per_s",
+                        "value": stats["samples_per_s"], "runs": steps - 2})
+        print(f"  train_samples_per_s (1 process): {stats['samples_per_s']:.3g}", flush=True)
+        procs = args.ddp_procs if args.ddp_procs is not None else (torch.cuda.device_count() if gpu else 0)
+        if procs and procs > 1:
+            stats_file = Path(tmp) / "ddp_stats.json"
+            cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={procs}",
+                   "-m", "unipixie.training.train", "--data", str(data), "--out", str(Path(tmp) / "run_ddp"),
+                   "--steps", str(steps), "--batch", str(per_gpu * procs), "--preset", args.preset,
+                   "--device", "cuda" if gpu else "cpu", "--save-every", str(10 ** 9), "--log-every", str(10 ** 9),
+                   "--warmup", "1", "--stats-out", str(stats_file)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0 or not stats_file.is_file():
+                print(f"  torchrun with {procs} processes failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}", flush=True)
+            else:
+                ddp = json.loads(stats_file.read_text())
+                results.append({"case": f"training, all heads + consistency, batch {per_gpu} per GPU, {ddp['precision']}, "
+                                        f"torchrun {procs} processes, {steps - 2} timed steps, {base}",
+                                "device": f"{procs} x {name}", "metric": "train_samples_per_s",
+                                "value": ddp["samples_per_s"], "runs": steps - 2,
+                                "vs": {"what": "1 process, same run", "ratio": ddp["samples_per_s"] / stats["samples_per_s"]}})
+                print(f"  train_samples_per_s ({procs} processes): {ddp['samples_per_s']:.3g}", flush=True)
+    return results

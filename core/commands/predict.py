@@ -1,0 +1,100 @@
+"""``unipixie predict``: material fields, LBS and spring-mass parameters for a feature grid."""
+
+from __future__ import annotations
+
+import argparse
+
+from ._common import device, existing_file, unit_interval
+
+NAME = "predict"
+HELP = "predict materials (MPM field, LBS parameters, spring-mass stiffness) for a feature grid at one or more alpha values"
+EXAMPLES = """  unipixie predict grid.npz --checkpoint runs/base --alpha 0.5 --out pred/
+  unipixie predict grid.npz --alphas 0,0.5,1 --heads mpm --out pred/
+  unipixie predict grid.npz --sweep 11 --out pred/       # the cached slider sweep"""
+
+
+def _alphas(text: str) -> list:
+    try:
+        return [unit_interval(x) for x in text.split(",") if x.strip()]
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"--alphas: {exc}") from None
+
+
+def add_arguments(p):
+    p.add_argument("grid", type=existing_file, metavar="GRID.npz", help="feature grid (unipixie.feature_grid/1)")
+    p.add_argument("--checkpoint", metavar="DIR", help="checkpoint directory (default: the shipped model)")
+    p.add_argument("--alpha", type=unit_interval, default=None, help="one alpha in [0, 1] (soft to stiff; default 0.5)")
+    p.add_argument("--alphas", type=_alphas, default=None, metavar="A,B,...", help="several alphas, predicted in one pass")
+    p.add_argument("--sweep", type=int, default=None, metavar="K", help="predict K evenly spaced alphas and write the cached sweep")
+    p.add_argument("--heads", default="mpm,lbs,spring_mass", help="comma-separated: mpm, lbs, spring_mass (default all)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (same seed, same result)")
+    p.add_argument("--steps", type=int, default=None, help="Heun steps (default 15)")
+    p.add_argument("--device", type=device, default="auto")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+
+
+def run(args) -> int:
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..errors import UserError
+    from ..model.inference import DEFAULT_STEPS, Predictor, canonical_heads
+    from ..model.sweep import predict_sweep
+    from ..progress import Progress
+    from ..types import FeatureGrid
+
+    chosen = [x is not None for x in (args.alpha, args.alphas, args.sweep)]
+    if sum(chosen) > 1:
+        raise UserError("give only one of --alpha, --alphas and --sweep")
+    heads = canonical_heads(args.heads)
+    steps = args.steps or DEFAULT_STEPS
+    grid = FeatureGrid.load(args.grid)
+    predictor = Predictor.load(args.checkpoint, device=args.device)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with Progress(total=1.0, description="predict") as progress:
+        if args.sweep is not None:
+            sweep = predict_sweep(predictor, grid, count=args.sweep, seed=args.seed, heads=heads, steps=steps,
+                                  progress=progress)
+            path = sweep.save(out / "alpha_sweep.npz")
+            print(f"wrote the {len(sweep.alphas)}-value alpha sweep to {path}")
+            return 0
+        alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]
+        pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress)
+    summary = {"checkpoint": predictor.checkpoint, "grid": str(args.grid), "seed": args.seed, "steps": steps,
+               "seconds": pred.seconds, "device": str(predictor.device), "alphas": []}
+    for i, a in enumerate(pred.alphas):
+        tag = f"a{a:.3f}"
+        entry = {"alpha": float(a)}
+        if pred.mpm is not None:
+            m = pred.mpm[i]
+            m.save(out / f"material_field_{tag}.npz")
+            logE = np.log10(m.E)
+            entry["mpm"] = {"file": f"material_field_{tag}.npz", "mean_log10_E": float(logE.mean()),
+                            "median_E_Pa": float(np.median(m.E)), "mean_density": float(m.density.mean()),
+                            "mean_nu": float(m.nu.mean()),
+                            "classes": {int(c): int(n) for c, n in zip(*np.unique(m.material, return_counts=True))}}
+        if pred.lbs is not None:
+            b = pred.lbs[i]
+            np.savez_compressed(out / f"lbs_{tag}.npz", format="unipixie.lbs_prediction/1", alpha=a, params=b.params,
+                                E=b.E, nu=b.nu, occupancy=np.packbits(grid.occupancy.ravel()))
+            entry["lbs"] = {"file": f"lbs_{tag}.npz", "median_E_Pa": float(np.median(b.E))}
+        if pred.spring_mass is not None:
+            s = pred.spring_mass[i]
+            np.savez_compressed(out / f"spring_{tag}.npz", format="unipixie.spring_prediction/1", alpha=a,
+                                stiffness=s.stiffness, softness=np.float64(s.softness))
+            entry["spring_mass"] = {"file": f"spring_{tag}.npz", "median_stiffness": float(np.median(s.stiffness)),
+                                    "softness": s.softness}
+        summary["alphas"].append(entry)
+    (out / "prediction.json").write_text(json.dumps(summary, indent=2) + "\n")
+    for e in summary["alphas"]:
+        line = f"alpha {e['alpha']:.3f}:"
+        if "mpm" in e:
+            line += f" median E {e['mpm']['median_E_Pa']:.3g} Pa, mean density {e['mpm']['mean_density']:.4g} kg/m^3"
+        if "spring_mass" in e:
+            line += f", softness {e['spring_mass']['softness']:.3g}"
+        print(line)
+    print(f"predicted {len(pred.alphas)} alpha value(s) in {pred.seconds:.2f} s on {predictor.device}; files in {out}")
+    return 0
