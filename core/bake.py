@@ -744,19 +744,46 @@ def trajectory_to_local(obj: BakeObject, positions: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- LBS handles → bones
+def _safe_scale(A: np.ndarray, D: np.ndarray, margin: float = 0.5) -> float:
+    """Largest s ≥ 0 (times ``margin``) such that det(A_t + s' D_t) stays positive for all s' ≤ s and all t.
+
+    A, D: (T, 3, 3).  det(A + sD) = det A · det(I + sM), M = A⁻¹D, a cubic in s whose smallest positive
+    real root is where the bone map would collapse.
+    """
+    try:
+        M = np.linalg.solve(A, D)
+    except np.linalg.LinAlgError:
+        return np.inf  # a singular constant handle: refused by the caller anyway
+    tr = np.trace(M, axis1=-2, axis2=-1)
+    c2 = 0.5 * (tr ** 2 - np.trace(M @ M, axis1=-2, axis2=-1))
+    c3 = np.linalg.det(M)
+    smallest = np.inf
+    for t in range(len(M)):
+        roots = np.roots([c3[t], c2[t], tr[t], 1.0]) if abs(c3[t]) + abs(c2[t]) + abs(tr[t]) > 0 else []
+        real = [r.real for r in np.atleast_1d(roots) if abs(r.imag) <= 1e-9 * max(1.0, abs(r)) and r.real > 0]
+        if real:
+            smallest = min(smallest, min(real))
+    return margin * smallest
+
+
 def lbs_blend_form(weights: np.ndarray, handle_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
     """Rewrite the LBS solver's motion as a convex blend of absolute affine maps (what an armature does).
 
     The LBS solver (:mod:`unipixie.solvers.lbs`) moves a rest point X (world metres) as
     ``x = A [X; 1] + Σ_{h<H} w_h(X) D_h [X; 1]`` with ``A = handle_transforms[:, H]`` (the constant
     handle, a full affine map) and ``D_h = handle_transforms[:, h]`` displacement maps; ``weights``
-    are (N, H+1) with the last column 1.  With ``K = max_X Σ_h |w_h(X)|`` this equals
-    ``Σ_b ω_b(X) M_b [X; 1]`` for the bones ``M_0 = A`` (weight ``1 − Σ|w_h|/K``) and
-    ``M_h± = A ± K D_h`` (weight ``w_h⁺/K`` or ``w_h⁻/K``): weights in [0, 1] summing to 1, as
-    Blender's Armature modifier needs.  Bones whose weight is zero everywhere are dropped.
+    are (N, H+1) with the last column 1.  This equals ``Σ_b ω_b(X) M_b [X; 1]`` for the bones
+    ``M_const = A`` and ``M_h± = A ± k_h± D_h`` with weights ``ω_h± = w_h±(X) / k_h±`` (the positive
+    and negative parts of w_h) and ``ω_const = 1 − Σ ω_h±``: weights in [0, 1] summing to 1, as
+    Blender's Armature modifier needs, for any scales k with ``Σ_h w_h±/k_h± ≤ 1`` at every vertex.
+    The scales are chosen as small as that allows but proportional to the largest scale at which
+    each bone map stays orientation-preserving over the whole motion (half the distance to
+    collapse), so that the bones are proper (rotation × stretch) maps whenever that is possible.
+    Bones whose weight is zero everywhere are dropped.
 
     Returns ``(maps (T, B, 4, 4) world-space, bone_weights (N, B), labels)`` with labels such as
-    ``"constant"``, ``"03+"``, ``"03-"``.
+    ``"constant"``, ``"03+"``, ``"03-"``; a bone map may still have det ≤ 0 when the motion is too
+    large for any choice (the caller refuses those).
     """
     W = np.asarray(weights, dtype=np.float64)
     HT = np.asarray(handle_transforms, dtype=np.float64)
@@ -764,9 +791,6 @@ def lbs_blend_form(weights: np.ndarray, handle_transforms: np.ndarray) -> tuple[
     H = H1 - 1
     if W.ndim != 2 or W.shape[1] != H1:
         raise ValueError(f"weights must be (N, {H1}), got {W.shape}")
-    w = W[:, :H]
-    K = float(np.max(np.sum(np.abs(w), axis=1))) if H else 0.0
-    K = max(K, 1e-12)
 
     def affine(m):
         out = np.zeros(m.shape[:-2] + (4, 4))
@@ -775,17 +799,31 @@ def lbs_blend_form(weights: np.ndarray, handle_transforms: np.ndarray) -> tuple[
         return out
 
     A = affine(HT[:, H])
-    maps = [A]
-    bone_w = [1.0 - np.sum(np.abs(w), axis=1) / K]
-    labels = ["constant"]
+    parts, limits = [], []
     for h in range(H):
+        for sign in (1.0, -1.0):
+            part = np.clip(sign * W[:, h], 0.0, None)
+            if np.any(part > 0):
+                lim = _safe_scale(A[:, :3, :3], sign * HT[:, h, :, :3])
+                parts.append((h, sign, part))
+                limits.append(lim if np.isfinite(lim) else None)
+    finite = [x for x in limits if x is not None]
+    fallback = max(finite) if finite else 1.0
+    scales = np.array([x if x is not None else fallback for x in limits])
+    if parts:
+        load = sum(p / sc for (_, _, p), sc in zip(parts, scales))  # (N,) Σ w±/s± per vertex
+        lam = float(np.max(load))
+        scales = scales * max(lam, 1e-12)  # smallest scales keeping the constant weight ≥ 0
+    maps = [A]
+    bone_w = [np.ones(len(W))]
+    labels = ["constant"]
+    for (h, sign, part), k in zip(parts, scales):
         D = np.zeros((T, 4, 4))
         D[:, :3, :] = HT[:, h]
-        for sign, part in ((1.0, np.clip(w[:, h], 0, None)), (-1.0, np.clip(-w[:, h], 0, None))):
-            if np.any(part > 0):
-                maps.append(A + sign * K * D)
-                bone_w.append(part / K)
-                labels.append(f"{h:02d}{'+' if sign > 0 else '-'}")
+        maps.append(A + sign * k * D)
+        bone_w.append(part / k)
+        bone_w[0] = bone_w[0] - part / k
+        labels.append(f"{h:02d}{'+' if sign > 0 else '-'}")
     return np.stack(maps, axis=1), np.clip(np.stack(bone_w, axis=1), 0.0, 1.0), labels
 
 
@@ -958,7 +996,8 @@ def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.nd
     L = np.linalg.inv(S) @ maps @ S
     det = np.linalg.det(L[..., :3, :3])
     if np.any(det <= 0):
-        return None, "a handle transform (scaled by the weights' range) mirrors or collapses space, which no bone can do"
+        return None, ("the deformation is too large for bones: a handle's map, scaled by the range of its weights, "
+                      "would mirror or collapse space, which no rotation and scale can do")
     x0 = obj.rest_local
     wsum = bone_w.sum(0)
     heads = np.where(wsum[:, None] > 1e-9, (bone_w.T @ x0) / np.maximum(wsum, 1e-12)[:, None], x0.mean(0))
