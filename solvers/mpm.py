@@ -250,7 +250,11 @@ class MPMSimulation(Simulation):
                                 f"lattice points (settings max_particles = {s.max_particles:,}); use a larger dx or "
                                 "fewer cells_across")
             points = fill_mesh(body.mesh, spacing, jitter=s.jitter, seed=s.seed)
-            volumes = np.full(len(points), spacing ** 3)
+            volume = spacing ** 3
+            if body.mesh.is_watertight and body.mesh.volume > 0:
+                # the lattice misses part of the cells cut by the surface: share the true volume (and mass)
+                volume = float(body.mesh.volume) / len(points)
+            volumes = np.full(len(points), volume)
         if len(points) > s.max_particles:
             raise UserError(f"the body needs {len(points):,} particles, more than settings max_particles = "
                             f"{s.max_particles:,}; use a larger dx")
