@@ -400,8 +400,20 @@ def unregister_material_predictor(predictor: MaterialPredictor) -> None:
 
 @dataclass
 class ModelSource(MaterialSource):
-    """The model's material at α (through the predictor registered with :func:`register_material_predictor`)."""
+    """The model's material at α.
 
+    features: a FeatureGrid file of the object (``unipixie features``); with it, the model in
+        ``checkpoint`` (default: the shipped model) predicts the material here
+        (:func:`material_from_prediction`).  Without it, the predictor registered with
+        :func:`register_material_predictor` is asked (the add-on's cached prediction); with neither,
+        a :class:`UserError` says what is missing.
+    seed: the model's noise seed (same seed, same material); device: torch device for the model.
+    """
+
+    features: str = ""
+    checkpoint: str = ""
+    seed: int = 0
+    device: str = "cpu"
     kind = "model"
 
     def resolve(self, obj, alpha, solver):
@@ -410,25 +422,89 @@ class ModelSource(MaterialSource):
         alpha = float(alpha)
         if not 0.0 <= alpha <= 1.0:
             raise UserError(f"α must lie in [0, 1], got {alpha:g}")
+        if self.features:
+            return predict_material(obj, self.features, alpha, solver, checkpoint=self.checkpoint or None,
+                                    seed=self.seed, device=self.device)
         if not _PREDICTORS:
-            raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model, and no model predictor "
-                            "is available in this session (no trained model is installed or loaded); bake with a "
-                            "homogeneous material (--E/--nu/--density/--material-class) or a material field file "
-                            "(--material-file) instead")
+            raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model and the object's feature "
+                            "grid, and neither a feature grid (--features GRID.npz from 'unipixie features') nor a "
+                            "prediction of the object is available; bake with a homogeneous material "
+                            "(--E/--nu/--density/--material-class) or a material field file (--material-file) instead")
         resolved = _PREDICTORS[-1](obj, alpha, solver)
         if not isinstance(resolved, ResolvedMaterial):
             raise TypeError(f"material predictor returned {type(resolved).__name__}, expected ResolvedMaterial")
         return resolved
 
     def to_dict(self) -> dict:
-        return {"source": "model"}
+        d = {"source": "model"}
+        if self.features:
+            d.update(features=str(self.features), checkpoint=str(self.checkpoint), seed=self.seed)
+        return d
+
+
+MODEL_HEADS = {"mpm": ("mpm",), "lbs": ("mpm", "lbs"), "spring_mass": ("mpm", "spring_mass")}
+"""Model heads each solver's material needs (the MPM head gives density and class to all)."""
+
+
+def predict_material(obj: BakeObject, features, alpha: float, solver: str, checkpoint=None, seed: int = 0,
+                     device: str = "cpu") -> ResolvedMaterial:
+    """Run the model on the object's feature grid at one α and turn its output into the solver's material."""
+    from .model import predict
+    from .types import FeatureGrid
+
+    grid = FeatureGrid.load(features)
+    pred = predict(grid, [alpha], heads=MODEL_HEADS[solver], seed=seed, checkpoint=checkpoint, device=device)
+    res = material_from_prediction(obj, pred, 0, solver)
+    res.description = f"model at α {alpha:g} ({Path(str(checkpoint or 'default model')).name}, seed {seed})"
+    return res
+
+
+def material_from_prediction(obj: BakeObject, prediction, index: int, solver: str) -> ResolvedMaterial:
+    """The material for ``solver`` from a model prediction (``core.model.Prediction``) at ``prediction.alphas[index]``.
+
+    MPM: the predicted field, mapped from the normalised cube onto the object's world bounding box.
+    LBS: the LBS head's E, ν field (density and class from the MPM head) and its 650 skinning parameters
+    as the solver's ``skinning_params``.  Spring-mass: the MPM field for the masses and the spring head's
+    per-anchor stiffness and softness as the solver's explicit ``stiffness`` / ``softness``.
+    """
+    from .normalise import Normalisation
+
+    if prediction.mpm is None:
+        raise UserError("the prediction has no MPM head output (density and class are needed by every solver)")
+    field_n = prediction.mpm[index]
+    norm = Normalisation.from_points(obj.rest_world)
+    alpha = float(prediction.alphas[index])
+    if solver == "mpm":
+        return ResolvedMaterial(norm.field_to_world(field_n), description=f"model at α {alpha:g}")
+    if solver == "lbs":
+        if prediction.lbs is None:
+            raise UserError("the prediction has no LBS head output")
+        lp = prediction.lbs[index]
+        lbs_field = dataclasses.replace(field_n, E=np.asarray(lp.E, np.float32), nu=np.asarray(lp.nu, np.float32))
+        return ResolvedMaterial(norm.field_to_world(lbs_field), settings={"skinning_params": np.asarray(lp.params)},
+                                description=f"model at α {alpha:g} (LBS head)")
+    if solver == "spring_mass":
+        if prediction.spring_mass is None:
+            raise UserError("the prediction has no spring-mass head output")
+        sp = prediction.spring_mass[index]
+        k = np.asarray(sp.stiffness, np.float64)
+        return ResolvedMaterial(norm.field_to_world(field_n),
+                                settings={"stiffness": k, "softness": float(sp.softness), "anchors": int(len(k))},
+                                description=f"model at α {alpha:g} (spring head)")
+    raise UserError(f"unknown solver {solver!r}")
 
 
 def material_source_from_dict(d) -> MaterialSource:
     """Parse a manifest's ``material`` value: ``"model"``, ``{"file": path}`` or
     ``{"E": .., "nu": .., "density": .., "class": ..}`` (missing keys take the panel defaults)."""
-    if d is None or d == "model" or (isinstance(d, dict) and d.get("source") == "model"):
+    if d is None or d == "model":
         return ModelSource()
+    if isinstance(d, dict) and (d.get("source") == "model" or "features" in d):
+        unknown = set(d) - {"source", "features", "checkpoint", "seed"}
+        if unknown:
+            raise UserError(f"'material' (model) has unknown key(s) {sorted(unknown)}; use features, checkpoint, seed")
+        return ModelSource(features=str(d.get("features", "")), checkpoint=str(d.get("checkpoint", "") or ""),
+                           seed=int(d.get("seed", 0)))
     if isinstance(d, str):
         return FieldFileSource(d)
     if not isinstance(d, dict):
@@ -1291,8 +1367,9 @@ def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None
         else:
             frame_ranges = parse_frame_list(str(frames))
         material = d.get("material")
-        if isinstance(material, dict) and material.get("file"):
-            material = {**material, "file": str(_rel(base, material["file"]))}
+        if isinstance(material, dict):
+            material = {**material, **{k: str(_rel(base, material[k])) for k in ("file", "features", "checkpoint")
+                                       if material.get(k)}}
         elif isinstance(material, str) and material != "model":
             material = str(_rel(base, material))
         scen = d.get("scenario") or {}

@@ -12,7 +12,7 @@ HELP = "simulate objects of a .blend (MPM, LBS, spring-mass) and save them baked
 EXAMPLES = """  unipixie bake scene.blend --object Jelly --solver mpm --alpha 0.5 --out baked.blend
   unipixie bake scene.blend --object Jelly --solver spring_mass --E 2e5 --nu 0.3 --density 800 --frames 1-120 --out baked.blend
   unipixie bake scene.blend --object 'Rock*' --object Plant --solver mpm --material-file field.npz --out 'baked_{object}.blend'
-  unipixie bake scene.blend --object Jelly --alpha 0,0.5,1 --effects linear_drag:c=0.5 --device cuda --out 'jelly_a{alpha}.blend'
+  unipixie bake scene.blend --object Jelly --alpha 0,0.5,1 --features jelly_grid.npz --effects linear_drag:c=0.5 --device cuda --out 'jelly_a{alpha}.blend'
   unipixie bake --manifest jobs.json --shard 3/8           (a farm task: the 4th of 8 parts)
   blender -b --python-expr "import bl_ext.user_default.unipixie.cli as c; c.main()" -- bake scene.blend --object Jelly --out baked.blend"""
 
@@ -73,7 +73,11 @@ def add_arguments(p):
     p.add_argument("--manifest", type=_common.existing_file, metavar="JOBS.json",
                    help="a job manifest (format unipixie.bake-manifest/1, see docs/baking.md)")
     p.add_argument("--list", action="store_true", help="print the jobs (of this shard) and exit")
-    m = p.add_argument_group("material (default: --alpha → the model; otherwise the object's UniPixie settings)")
+    m = p.add_argument_group("material (default: --alpha → the model's prediction; otherwise the object's UniPixie settings)")
+    m.add_argument("--features", metavar="GRID.npz",
+                   help="the object's feature grid ('unipixie features'): the model predicts the material at --alpha")
+    m.add_argument("--checkpoint", metavar="DIR", help="model checkpoint for --features (default: the shipped model)")
+    m.add_argument("--seed", type=int, default=0, help="model noise seed for --features (default 0)")
     m.add_argument("--material-file", metavar="FIELD.npz", help="a material field (unipixie.material_field/1)")
     m.add_argument("--E", type=_positive, metavar="PA", help="Young's modulus of a homogeneous material, Pa")
     m.add_argument("--nu", type=float, metavar="NU", help="Poisson's ratio of a homogeneous material")
@@ -141,8 +145,15 @@ def jobs_from_args(args):
     homogeneous = [v is not None for v in (args.E, args.nu, args.density, args.material_class)]
     if args.material_file and any(homogeneous):
         raise UserError("give either --material-file or --E/--nu/--density/--material-class, not both")
+    if args.features and (args.material_file or any(homogeneous)):
+        raise UserError("--features (the model's material) cannot be combined with --material-file or --E/--nu/...")
+    if args.features and not args.alpha:
+        raise UserError("--features needs --alpha: the model predicts the material at α")
     material = None
-    if args.material_file:
+    if args.features:
+        material = bake.ModelSource(features=str(args.features), checkpoint=args.checkpoint or "", seed=args.seed,
+                                    device=args.device or "cpu")
+    elif args.material_file:
         material = bake.FieldFileSource(str(args.material_file))
     elif any(homogeneous):
         d = bake.DEFAULT_HOMOGENEOUS
