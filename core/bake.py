@@ -830,16 +830,19 @@ def _safe_scale(A: np.ndarray, D: np.ndarray, margin: float = 0.5) -> float:
         M = np.linalg.solve(A, D)
     except np.linalg.LinAlgError:
         return np.inf  # a singular constant handle: refused by the caller anyway
-    tr = np.trace(M, axis1=-2, axis2=-1)
-    c2 = 0.5 * (tr ** 2 - np.trace(M @ M, axis1=-2, axis2=-1))
+    c1 = np.trace(M, axis1=-2, axis2=-1)
+    c2 = 0.5 * (c1 ** 2 - np.trace(M @ M, axis1=-2, axis2=-1))
     c3 = np.linalg.det(M)
-    smallest = np.inf
-    for t in range(len(M)):
-        roots = np.roots([c3[t], c2[t], tr[t], 1.0]) if abs(c3[t]) + abs(c2[t]) + abs(tr[t]) > 0 else []
-        real = [r.real for r in np.atleast_1d(roots) if abs(r.imag) <= 1e-9 * max(1.0, abs(r)) and r.real > 0]
-        if real:
-            smallest = min(smallest, min(real))
-    return margin * smallest
+    # 1 + c1 s + c2 s² + c3 s³ = 0  ⇔  u³ + c1 u² + c2 u + c3 = 0 with u = 1/s (monic: batched companion eigenvalues)
+    comp = np.zeros((len(M), 3, 3))
+    comp[:, 0, :] = -np.stack([c1, c2, c3], axis=1)
+    comp[:, 1, 0] = 1.0
+    comp[:, 2, 1] = 1.0
+    u = np.linalg.eigvals(comp)
+    real = (np.abs(u.imag) <= 1e-9 * np.maximum(1.0, np.abs(u))) & (u.real > 0)
+    if not np.any(real):
+        return np.inf
+    return margin / float(np.max(u.real[real]))
 
 
 def lbs_blend_form(weights: np.ndarray, handle_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
@@ -976,10 +979,11 @@ def continuous_svd(L: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     fix = np.linalg.det(V) < 0  # det L > 0: det U = det V; make both proper
     V[fix, :, 2] *= -1
     U[fix, :, 2] *= -1
-    perms = [np.array(p) for p in itertools.permutations(range(3))]
+    perms = np.array(list(itertools.permutations(range(3))))
+    rows = np.arange(3)
     for t in range(1, T):
-        M = V[t - 1].T @ V[t]
-        best = max(perms, key=lambda p: float(np.sum(np.abs(M[np.arange(3), p]))))
+        M = np.abs(V[t - 1].T @ V[t])
+        best = perms[int(np.argmax(M[rows, perms].sum(1)))]
         V[t], U[t], s[t] = V[t][:, best], U[t][:, best], s[t][best]
         signs = np.sign(np.sum(V[t - 1] * V[t], axis=0))
         signs[signs == 0] = 1.0
@@ -1044,7 +1048,12 @@ def armature_deform(rest_local: np.ndarray, weights: np.ndarray, deform: np.ndar
     total = w.sum(1)
     ok = total > 1e-4
     wn = np.where(ok[:, None], w / np.where(ok, total, 1.0)[:, None], 0.0)
-    moved = np.einsum("nb,tbij,nj->tni", wn, deform[..., :3, :3], x) + np.einsum("nb,tbi->tni", wn, deform[..., :3, 3])
+    T, B = deform.shape[:2]
+    x1 = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    moved = np.empty((T, len(x), 3))
+    for t in range(T):  # per frame: blended (N, 3, 4) matrices by one GEMM, then applied per vertex
+        blended = (wn @ deform[t, :, :3, :].reshape(B, 12)).reshape(len(x), 3, 4)
+        moved[t] = (blended * x1[:, None, :]).sum(-1)
     return np.where(ok[None, :, None], moved, x[None])
 
 
