@@ -1,0 +1,142 @@
+"""``unipixie dataset build|card|pack|unpack``: the procedural training set, its card, and its transfer pack."""
+
+from __future__ import annotations
+
+NAME = "dataset"
+HELP = "build the procedural dataset (sharded, resumable), write its card, pack it for a GPU machine"
+EXAMPLES = """  unipixie dataset build data/pmv --count 500                      # everything, one process
+  unipixie dataset build data/pmv --count 500 --shard 0/4          # one of four farm jobs (any scheduler)
+  unipixie dataset build data/tiny --count 6 --resolution 16 --views 2 --render-resolution 64 --tiny-ground-truth
+  unipixie dataset card data/pmv                                   # refresh split.json, dataset.json, CARD.md
+  unipixie dataset pack data/pmv packs/pmv --part-mb 50            # compact pack in parts of <= 50 MB
+  unipixie dataset unpack packs/pmv data/pmv_samples               # on the GPU machine (torch + numpy only)"""
+
+
+def add_arguments(p):
+    from . import _common
+
+    sub = p.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
+    b = sub.add_parser("build", help="build objects 0..N-1 of this shard (finished objects are skipped)",
+                       description="Generate procedural objects, render and lift their features, simulate MPM "
+                                   "ground truth at α = 0 and 1 and fit LBS and spring-mass parameters to it. "
+                                   "Every option below is recorded in OUT/build.json; later shards and resumes "
+                                   "must use the same.")
+    b.add_argument("out", metavar="OUT", help="dataset directory (created)")
+    b.add_argument("--count", type=_common.positive_int, required=True, metavar="N", help="objects in the whole dataset")
+    b.add_argument("--shard", type=_common.shard, default=(0, 1), metavar="i/n",
+                   help="build only objects with index ≡ i (mod n) (default 0/1 = all)")
+    b.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
+    b.add_argument("--classes", metavar="A,B,...", help="semantic classes to cycle through (default: all ten)")
+    b.add_argument("--resolution", type=_common.positive_int, default=64, metavar="R", help="grid voxels per side (default 64)")
+    b.add_argument("--views", type=_common.positive_int, default=8, metavar="N", help="rendered views per object (default 8)")
+    b.add_argument("--render-resolution", type=_common.positive_int, default=224, metavar="PX",
+                   help="square render size (default 224)")
+    b.add_argument("--engine", choices=("workbench", "cycles"), default="workbench",
+                   help="renderer for the features (default workbench: fast, texture colours)")
+    b.add_argument("--samples", type=_common.positive_int, default=8, help="Cycles samples (with --engine cycles)")
+    src = b.add_mutually_exclusive_group()
+    src.add_argument("--clip-weights", metavar="PATH", help="use CLIP ViT-B-16 from these local weights instead of the "
+                                                            "offline extractor")
+    src.add_argument("--offline-features", action="store_true", default=True,
+                     help="the seeded untrained offline ViT (offline-random-vit-w32, NOT CLIP; the default)")
+    b.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST", help="split fractions (default 0.8,0.1,0.1)")
+    b.add_argument("--frames", type=_common.positive_int, default=30, help="frames of the ground-truth clip (default 30)")
+    b.add_argument("--fps", type=float, default=60.0, help="frame rate of the clip (default 60)")
+    b.add_argument("--cells-across", type=_common.positive_int, default=12, help="MPM cells across the object (default 12)")
+    b.add_argument("--wave-speed-per-size", type=float, default=400.0, metavar="PER_S",
+                   help="cap on the simulated elastic wave speed, in object sizes per second (default 400)")
+    b.add_argument("--tracked-points", type=int, default=1024, help="tracked mesh vertices (default 1024; 0 = all)")
+    b.add_argument("--spring-anchors", type=_common.positive_int, default=256,
+                   help="spring-mass anchors N_a (default 256; train the model with --set spring_anchors=N_a)")
+    b.add_argument("--lbs-cubature", type=_common.positive_int, default=200, help="LBS cubature points (default 200)")
+    b.add_argument("--fit-evaluations", type=_common.positive_int, default=5,
+                   help="simulations per end of each test-time fit (default 5)")
+    b.add_argument("--tiny-ground-truth", action="store_true",
+                   help="tiny ground truth for tests (6 frames, 6 cells, 64 tracked points, 32 anchors, 3 fit simulations)")
+    b.add_argument("--device", type=_common.device, default="cpu",
+                   help="Warp device of the solvers and torch device of the features (cpu, cuda; default cpu)")
+    b.add_argument("--retry-failed", action="store_true", help="build objects recorded as failed again")
+
+    c = sub.add_parser("card", help="rescan a dataset: write split.json, dataset.json and CARD.md")
+    c.add_argument("dir", metavar="DIR")
+
+    k = sub.add_parser("pack", help="write a compact pack of a built dataset for a torch-only GPU machine")
+    k.add_argument("dir", metavar="DIR", help="built dataset")
+    k.add_argument("out", metavar="PACK", help="pack directory (index.json + part files)")
+    k.add_argument("--part-mb", type=float, default=50.0, help="largest part file in MB (default 50)")
+    k.add_argument("--splits", default="train,val,test", help="splits to pack (default all)")
+
+    u = sub.add_parser("unpack", help="turn a pack back into training samples (needs only torch and numpy)")
+    u.add_argument("pack", metavar="PACK")
+    u.add_argument("out", metavar="OUT", help="directory for samples/*.npz and split.json")
+
+
+def _gt_settings(args):
+    from ...training.ground_truth import GroundTruthSettings
+
+    if args.tiny_ground_truth:
+        return GroundTruthSettings(frames=6, cells_across=6, min_particles=100, tracked_points=64, spring_anchors=32,
+                                   lbs_cubature_points=32, lbs_mass_samples=300, fit_evaluations=3,
+                                   wave_speed_per_size=100.0, device="cpu" if args.device == "auto" else args.device)
+    return GroundTruthSettings(frames=args.frames, fps=args.fps, cells_across=args.cells_across,
+                               wave_speed_per_size=args.wave_speed_per_size, tracked_points=args.tracked_points,
+                               spring_anchors=args.spring_anchors, lbs_cubature_points=args.lbs_cubature,
+                               fit_evaluations=args.fit_evaluations, device=args.device)
+
+
+def run(args) -> int:
+    from ..errors import UserError
+
+    action = args.dataset_command
+    if action == "build":
+        from ...training import dataset
+        from ..progress import Progress
+
+        try:
+            split = tuple(float(x) for x in args.split.split(","))
+        except ValueError:
+            raise UserError(f"--split {args.split!r}: expected three numbers TRAIN,VAL,TEST") from None
+        classes = tuple(c.strip() for c in args.classes.split(",")) if args.classes else None
+        kw = {"classes": classes} if classes else {}
+        settings = dataset.BuildSettings(seed=args.seed, resolution=args.resolution, views=args.views,
+                                         render_resolution=args.render_resolution, engine=args.engine,
+                                         samples=args.samples, offline_features=args.clip_weights is None,
+                                         clip_weights=args.clip_weights,
+                                         feature_device="cpu" if args.device == "auto" else args.device,
+                                         split=split, ground_truth=_gt_settings(args).to_dict(), **kw)
+        try:
+            import bpy  # noqa: F401
+        except ImportError:
+            raise UserError("building a dataset renders with Blender: it needs the 'bpy' module "
+                            "(pip install bpy==5.0.1 with Python 3.11)") from None
+        n = len(dataset.shard_indices(args.count, args.shard))
+        with Progress(total=n, description=f"dataset {args.shard[0]}/{args.shard[1]}") as progress:
+            summary = dataset.build(args.out, args.count, settings, shard=args.shard,
+                                    retry_failed=args.retry_failed, progress=progress)
+        print(f"built {len(summary['built'])}, skipped {len(summary['skipped'])} (already there), failed "
+              f"{len(summary['failed'])} in {summary['seconds']:.0f} s; card: {args.out}/CARD.md")
+        for oid in summary["failed"]:
+            print(f"  failed: {oid} (see {args.out}/objects/{oid}/record.json)")
+        return 1 if summary["failed"] else 0
+    if action == "card":
+        from ...training import dataset
+
+        card = dataset.write_card(args.dir)
+        print(f"{card['objects']} objects ({', '.join(f'{k} {v}' for k, v in card['split_counts'].items())}), "
+              f"{card['failed']} failed; wrote {args.dir}/CARD.md, dataset.json, split.json")
+        return 0
+    if action == "pack":
+        from ...training import pack
+
+        splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
+        info = pack.write_pack(args.dir, args.out, part_bytes=int(args.part_mb * 1e6), splits=splits)
+        print(f"packed {info['objects']} objects into {len(info['parts'])} part(s), {info['bytes'] / 1e6:.1f} MB "
+              f"({info['bytes'] / max(info['objects'], 1) / 1e3:.0f} kB per object) in {args.out}")
+        return 0
+    if action == "unpack":
+        from ...training import pack
+
+        n = pack.unpack(args.pack, args.out)
+        print(f"wrote {n} training samples and split.json to {args.out}")
+        return 0
+    raise UserError(f"unknown dataset action {action!r}")
