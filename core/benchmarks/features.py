@@ -1,7 +1,7 @@
 """``unipixie bench features``: time render → dense features → lift for one object, by stage.
 
 The subject is a procedural textured object (Blender's Suzanne, subdivided twice, with a noise-texture
-base colour), rendered from 24 views at 224² with Cycles; features come from the **ViT-B-16 architecture
+base colour), rendered from 24 views at 224² with Cycles (8 spp); features come from the **ViT-B-16 architecture
 with random weights** (same cost as CLIP ViT-B-16, D = 768; no weights are needed, so the case name says
 "random weights"); lifting onto the 64³ grid.  Metrics: ``render_seconds``, ``occupancy_seconds``,
 ``features_seconds``, ``lift_seconds``, ``total_seconds`` (their sum: one object with the model already
@@ -30,12 +30,13 @@ VIEWS_FORMAT = "unipixie.bench_features_views/1"
 
 def add_arguments(p):
     from ..commands import _common
+    from ..features import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
 
     p.add_argument("--device", type=_common.device, default="cpu", help="torch device for features and lifting")
-    p.add_argument("--views", type=_common.positive_int, default=24, help="number of views (default 24)")
-    p.add_argument("--resolution", type=_common.positive_int, default=224, help="render size (default 224)")
+    p.add_argument("--views", type=_common.positive_int, default=DEFAULT_VIEW_COUNT, help="number of views")
+    p.add_argument("--resolution", type=_common.positive_int, default=DEFAULT_RESOLUTION, help="render size in pixels")
     p.add_argument("--engine", choices=("cycles", "workbench"), default="cycles")
-    p.add_argument("--samples", type=_common.positive_int, default=16, help="Cycles samples (default 16)")
+    p.add_argument("--samples", type=_common.positive_int, default=DEFAULT_SAMPLES, help="Cycles samples per pixel")
     p.add_argument("--runs", type=_common.positive_int, default=3, help="timed runs after one warm-up (default 3)")
     p.add_argument("--views-from", metavar="NPZ", help="time features + lift on views saved with --save-views "
                                                        "(no Blender needed; the render is not timed)")
@@ -55,33 +56,6 @@ def _device_name(device: str) -> str:
     except OSError:
         pass
     return f"{model or 'CPU'} ({os.cpu_count()} cores)"
-
-
-def _bench_object():
-    """A procedural textured object in the current Blender session (created, returned; caller removes)."""
-    import bpy
-
-    mesh = bpy.data.meshes.new("bench suzanne")
-    obj = bpy.data.objects.new("bench suzanne", mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    import bmesh
-
-    bm = bmesh.new()
-    bmesh.ops.create_monkey(bm)
-    bm.to_mesh(mesh)
-    bm.free()
-    obj.modifiers.new("subdivide", "SUBSURF").levels = 2
-    mat = bpy.data.materials.new("bench noise")
-    tree = mat.node_tree
-    if tree is None:
-        mat.use_nodes = True
-        tree = mat.node_tree
-    bsdf = next(n for n in tree.nodes if n.type == "BSDF_PRINCIPLED")
-    noise = tree.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 6.0
-    tree.links.new(noise.outputs["Color"], bsdf.inputs["Base Color"])
-    mesh.materials.append(mat)
-    return obj
 
 
 def save_bench_views(path, views, vertices_normalised, faces) -> Path:
@@ -131,9 +105,14 @@ def run(args) -> list[dict]:
         render_once = None
         subject = f"{views.count} pre-rendered views {views.images.shape[1]}² from {Path(args.views_from).name}"
     else:
-        import bpy  # noqa: F401 - needs Blender for the render stage
+        import importlib.util
 
-        from ..blender_io.render import RenderSettings, describe_subject, render_views
+        from ..errors import UserError
+
+        if importlib.util.find_spec("bpy") is None:
+            raise UserError("the render stage needs Blender's 'bpy' module (Python 3.11); without it, time the "
+                            "other stages with --views-from NPZ (saved by a run with --save-views)")
+        from ..blender_io.render import RenderSettings, benchmark_object, describe_subject, render_views
         from ..blender_io.scene_import import temporary_scene
 
         settings = RenderSettings(view_count=args.views, resolution=args.resolution, engine=args.engine,
@@ -152,9 +131,7 @@ def run(args) -> list[dict]:
     results = []
     with (temporary_scene("UniPixie benchmark") if not args.views_from else _null()) as scene:
         if not args.views_from:
-            import bpy
-
-            obj = _bench_object()
+            obj = benchmark_object(scene)
             subj = describe_subject([obj])
 
             def render_once():

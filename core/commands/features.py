@@ -11,6 +11,7 @@ EXAMPLES = """  unipixie features chair.glb --out chair_grid.npz --clip-weights 
 
 
 def add_arguments(p):
+    from ..features import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
     from . import _common
 
     p.add_argument("object", type=_common.existing_file, metavar="OBJECT",
@@ -18,14 +19,15 @@ def add_arguments(p):
     p.add_argument("--out", required=True, metavar="NPZ", help="write the feature grid here (compressed .npz)")
     p.add_argument("--object", dest="object_name", metavar="NAME",
                    help="the object to use from a .blend file (or one of several objects in a mesh file)")
-    p.add_argument("--views", type=_common.positive_int, default=24, metavar="N", help="number of views (default 24)")
-    p.add_argument("--resolution", type=_common.positive_int, default=224, metavar="PX",
-                   help="square render size in pixels (default 224, the ViT's input)")
+    p.add_argument("--views", type=_common.positive_int, default=DEFAULT_VIEW_COUNT, metavar="N",
+                   help=f"number of views (default {DEFAULT_VIEW_COUNT})")
+    p.add_argument("--resolution", type=_common.positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
+                   help=f"square render size in pixels (default {DEFAULT_RESOLUTION}, the ViT's input)")
     p.add_argument("--engine", choices=("cycles", "workbench"), default="cycles",
                    help="renderer: cycles (default; the object's materials as they are) or workbench (fast, "
                         "studio light)")
-    p.add_argument("--samples", type=_common.positive_int, default=16, metavar="N",
-                   help="Cycles samples per pixel (default 16, adaptive, no denoising)")
+    p.add_argument("--samples", type=_common.positive_int, default=DEFAULT_SAMPLES, metavar="N",
+                   help=f"Cycles samples per pixel (default {DEFAULT_SAMPLES}, adaptive, no denoising)")
     p.add_argument("--render-device", choices=("auto", "cpu", "gpu"), default="auto",
                    help="Cycles device (default auto: a GPU when Cycles finds one, else the CPU)")
     src = p.add_mutually_exclusive_group()
@@ -67,9 +69,9 @@ def run(args) -> int:
         from ..clip_features import resolve_clip_weights
 
         resolve_clip_weights(args.clip_weights)          # fail before rendering when the weights are missing
-    try:
-        import bpy  # noqa: F401 - rendering needs Blender
-    except ImportError:
+    import importlib.util
+
+    if importlib.util.find_spec("bpy") is None:             # rendering needs Blender
         raise UserError("rendering needs Blender's Python module 'bpy' (pip install bpy==5.0.1 with Python 3.11), "
                         "or run inside Blender: blender -b --python-expr \"from unipixie.core.cli import main; "
                         "main()\" -- features ...") from None
