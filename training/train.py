@@ -54,6 +54,8 @@ class TrainSettings:
     warmup: linear warm-up steps; None = min(3000, steps // 10) (3000 is the paper's).
     preset / model: model size preset and per-field overrides (``{"width": 256}``).
     fit_normalisation: fit the spring stiffness / softness and LBS normalisation to the data.
+    stop_after: stop (and save) after this many steps of this invocation, e.g. to fit a job's time
+        limit; continue later with ``resume`` (the schedule still runs to ``steps``).
     """
 
     data: str
@@ -82,6 +84,7 @@ class TrainSettings:
     dump_gradients: Optional[str] = None
     stats_out: Optional[str] = None
     cache_samples: int = 64
+    stop_after: Optional[int] = None
 
     def warmup_steps(self) -> int:
         return int(self.warmup) if self.warmup is not None else min(3000, self.steps // 10)
@@ -408,11 +411,14 @@ def train(s: TrainSettings, progress=None) -> dict:
                 log.write(json.dumps(rec) + "\n")
                 log.flush()
             progress.step(1, f"loss {loss:.4g}")
-            if (done % s.save_every == 0 or done == s.steps) and done != start_step:
+            stopping = s.stop_after is not None and step_offset + 1 >= s.stop_after
+            if done % s.save_every == 0 or done == s.steps or stopping:
                 if rank == 0:
                     _save(out, objective, optimizer, done, s, fingerprint, {"last_loss": loss})
                 if world > 1:
                     dist.barrier()
+            if stopping:
+                break
     finally:
         if log is not None:
             log.close()
@@ -471,6 +477,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-new-data", action="store_true", help="with --resume: accept a changed dataset")
     p.add_argument("--save-dtype", choices=("float32", "bfloat16", "float16"), default="float32",
                    help="dtype of the saved model weights (bfloat16 halves a model to ship)")
+    p.add_argument("--stop-after", type=int, default=None, metavar="N",
+                   help="stop and save after N steps of this invocation (continue later with --resume)")
     p.add_argument("--stats-out", metavar="JSON", help="write run statistics (losses, samples/s) to this file")
     p.add_argument("--dump-gradients", metavar="FILE",
                    help="write the first step's averaged gradients (safetensors) to check a distributed set-up")
@@ -496,7 +504,7 @@ def settings_from_args(args) -> TrainSettings:
                          log_every=args.log_every, workers=args.workers, preset=args.preset, model=overrides,
                          fit_normalisation=args.fit_normalisation, resume=args.resume,
                          allow_new_data=args.allow_new_data, save_dtype=args.save_dtype,
-                         dump_gradients=args.dump_gradients, stats_out=args.stats_out)
+                         dump_gradients=args.dump_gradients, stats_out=args.stats_out, stop_after=args.stop_after)
 
 
 def report(stats: dict, out: str) -> str:

@@ -206,7 +206,7 @@ PRESETS: dict[str, dict] = {
     "tiny": dict(width=64, attention_heads=4, stem_channels=32, voxel_channels=8, latent_tokens=8,
                  encoder_blocks=1, encoder_self_layers=1, mpm_blocks=2, lbs_blocks=2, spring_blocks=2,
                  hypernet_width=64, fourier_frequencies=4, time_frequencies=6, alpha_embedding_dim=16,
-                 mlp_ratio=2.0, spring_chunk=8, patch_size=2),
+                 mlp_ratio=2.0, spring_chunk=8, patch_size=1),
 }
 """Named size presets: ``paper`` (the defaults), ``small`` (ships with the add-on), ``tiny`` (tests)."""
 

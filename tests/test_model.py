@@ -1,0 +1,290 @@
+"""The model: patch layout, masking of unoccupied voxels, prediction shapes and determinism,
+checkpoints (round trip, mismatch errors), bad input, the α-sweep cache and the predict command."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from unipixie.core.errors import UserError
+from unipixie.core.model.checkpoint import load_model, save_model
+from unipixie.core.model.config import ModelConfig, preset
+from unipixie.core.model.inference import Prediction, Predictor
+from unipixie.core.model.layout import PatchLayout, VoxelBatch
+from unipixie.core.model.network import UniPixieModel
+from unipixie.core.model.sweep import AlphaSweep, predict_sweep
+from unipixie.core.types import FeatureGrid, GridGeometry, MaterialField
+from unipixie.solvers.materials import NUM_CLASSES, names
+from unipixie.solvers.skinning import LBS_PARAM_COUNT
+
+R, D, ANCHORS = 8, 12, 10
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: one intra-op thread is fastest and never oversubscribes a shared CI machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _config(**kw):
+    return preset("tiny", feature_model="test-features", feature_dim=D, grid_resolution=R, spring_anchors=ANCHORS, **kw)
+
+
+def _model(seed=0, **kw):
+    torch.manual_seed(seed)
+    m = UniPixieModel(_config(**kw))
+    with torch.no_grad():  # AdaLN-Zero starts every block at the identity; give all weights values
+        for p in m.parameters():
+            if p.dim() >= 2 and torch.count_nonzero(p) == 0:
+                p.normal_(0.0, 0.05)
+    return m.eval()
+
+
+def _occupancy(seed=0, R=R):
+    rng = np.random.default_rng(seed)
+    occ = rng.random((R, R, R)) < 0.35
+    occ[R // 2, R // 2, R // 2] = True
+    return occ
+
+
+def _grid(seed=0, feature_model="test-features", dim=D):
+    occ = _occupancy(seed)
+    feats = np.random.default_rng(seed + 1).normal(size=(occ.sum(), dim)).astype(np.float16)
+    return FeatureGrid(GridGeometry(R, [-0.5] * 3, 1.0 / R), occ, feats, feature_model=feature_model)
+
+
+# ---------------------------------------------------------------------------- shapes and masking
+@pytest.mark.parametrize("P", [1, 2, 4])
+def test_patch_layout_round_trip(P):
+    occs = [_occupancy(0), _occupancy(1)]
+    batch = VoxelBatch.from_grids(occs, [np.zeros((o.sum(), 1)) for o in occs])
+    lay = PatchLayout(batch.voxels, 2, R, P)
+    vals = torch.randn(batch.voxels.shape[0], 3)
+    tok = lay.to_tokens(vals)
+    assert tok.shape == (2, lay.tokens, P ** 3, 3)
+    assert torch.equal(lay.from_tokens(tok), vals)
+    assert int(lay.slot_mask.sum()) == batch.voxels.shape[0]
+    for b, occ in enumerate(occs):  # one valid token per occupied patch; centres inside the unit cube
+        G = R // P
+        n_patches = int(occ.reshape(G, P, G, P, G, P).any(axis=(1, 3, 5)).sum())
+        assert int(lay.token_valid[b].sum()) == n_patches
+        assert not lay.slot_mask[b][~lay.token_valid[b]].any()
+    assert float(lay.centres.min()) >= 0.0 and float(lay.centres.max()) <= 1.0
+
+
+def test_encoder_ignores_features_outside_the_occupancy():
+    m = _model()
+    occ = torch.from_numpy(np.stack([_occupancy(0), _occupancy(3)]))
+    dense = torch.randn(2, D, R, R, R)
+    z1, proj1 = m.encoder.encode_dense(dense, occ)
+    garbage = dense.clone()
+    garbage.permute(1, 0, 2, 3, 4)[:, ~occ] = torch.randn(D, int((~occ).sum())) * 1e4  # every unoccupied voxel
+    z2, proj2 = m.encoder.encode_dense(garbage, occ)
+    assert torch.equal(z1, z2) and torch.equal(proj1, proj2)
+    changed = dense.clone()
+    i, j, k = np.argwhere(occ[0].numpy())[0]
+    changed[0, :, i, j, k] += 3.0  # one occupied voxel does change the latents
+    z3, _ = m.encoder.encode_dense(changed, occ)
+    assert not torch.allclose(z1[0], z3[0]) and torch.allclose(z1[1], z3[1], atol=1e-6)
+    # the dense stem input is zero outside the occupancy
+    batch = VoxelBatch(torch.nonzero(occ), torch.randn(int(occ.sum()), D), 2, R)
+    with torch.no_grad():
+        stem = m.encoder.dense_stem_input(batch, m.encoder.project_voxels(batch.features))
+    assert float(stem.permute(1, 0, 2, 3, 4)[:, ~occ].abs().max()) == 0.0
+
+
+def test_decoder_ignores_noisy_targets_at_unoccupied_slots_and_padding():
+    m = _model(patch_size=2)
+    occs = [_occupancy(0), _occupancy(5)]
+    rng = np.random.default_rng(0)
+    feats = [rng.normal(size=(o.sum(), D)) for o in occs]
+    with torch.no_grad():
+        enc = m.encode(VoxelBatch.from_grids(occs, feats))
+        ctx = m.grid_context(m.mpm, enc)
+        lay = enc.layout
+        x = torch.randn(2, lay.tokens, lay.slots, 3)
+        t, a = torch.tensor([0.3, 0.6]), torch.tensor([0.2, 0.9])
+        out = m.mpm(x, t, a, ctx)
+        x2 = x.clone()
+        x2[~lay.slot_mask] = torch.randn(int((~lay.slot_mask).sum()), 3) * 100.0  # unoccupied slots + padding
+        out2 = m.mpm(x2, t, a, ctx)
+        assert torch.equal(out, out2)
+        assert float(out[~lay.slot_mask].abs().max()) == 0.0  # outputs masked
+        assert out.shape == (2, lay.tokens, lay.slots, 3 + NUM_CLASSES)
+        # object 0 alone gives the same voxels as object 0 inside a padded batch of two
+        enc0 = m.encode(VoxelBatch.from_grids(occs[:1], feats[:1]))
+        ctx0 = m.grid_context(m.mpm, enc0)
+        n0 = int(enc0.layout.token_valid.sum())
+        out0 = m.mpm(x[:1, :n0], t[:1], a[:1], ctx0)
+        v_batch = lay.from_tokens(out)[: int(occs[0].sum())]
+        assert torch.allclose(enc0.layout.from_tokens(out0), v_batch, atol=1e-5)
+
+
+def test_prediction_shapes_determinism_and_shared_noise():
+    p = Predictor(_model())
+    g = _grid()
+    K = int(g.occupancy.sum())
+    pred = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4)
+    assert len(pred.mpm) == len(pred.lbs) == len(pred.spring_mass) == 3
+    for i, m in enumerate(pred.mpm):
+        assert isinstance(m, MaterialField) and m.E.shape == (K,) and m.alpha == [0.0, 0.5, 1.0][i]
+        assert np.all((m.material >= 0) & (m.material < NUM_CLASSES))
+    assert pred.lbs[0].params.shape == (LBS_PARAM_COUNT,) and pred.lbs[0].E.shape == (K,)
+    assert pred.spring_mass[2].stiffness.shape == (ANCHORS,) and np.isfinite(pred.spring_mass[2].softness)
+    again = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4)
+    assert np.array_equal(again.mpm[1].E, pred.mpm[1].E) and np.array_equal(again.spring_mass[0].stiffness,
+                                                                             pred.spring_mass[0].stiffness)
+    other = p.predict(g, [0.5], seed=4, steps=4, heads="mpm")
+    assert not np.allclose(other.mpm[0].E, pred.mpm[1].E)
+    single = p.predict(g, [0.5], seed=3, steps=4)  # one α alone == the same α inside the batch (shared noise)
+    assert np.allclose(np.log10(single.mpm[0].E), np.log10(pred.mpm[1].E), atol=1e-4)
+    assert np.allclose(single.spring_mass[0].stiffness, pred.spring_mass[1].stiffness, rtol=1e-4)
+    only = p.predict(g, [0.5], seed=3, steps=4, heads=("lbs",))
+    assert only.mpm is None and only.spring_mass is None and only.lbs is not None
+
+
+def test_config_uses_the_shared_contracts():
+    cfg = ModelConfig()
+    assert cfg.num_classes == NUM_CLASSES and list(cfg.class_names) == names()
+    assert cfg.lbs_param_count == LBS_PARAM_COUNT == 650
+    assert cfg.spring_dim == cfg.spring_anchors + 1
+    with pytest.raises(UserError, match="patch_size"):
+        ModelConfig(grid_resolution=64, patch_size=6)
+    with pytest.raises(UserError, match="unknown field"):
+        ModelConfig.from_dict({"width": 64, "colour": "red"})
+
+
+# ---------------------------------------------------------------------------- checkpoints and bad input
+def test_checkpoint_round_trip_without_pickle(tmp_path):
+    m = _model(seed=1)
+    save_model(m, tmp_path / "ck", info={"step": 7})
+    assert sorted(f.name for f in (tmp_path / "ck").iterdir()) == ["config.json", "model.safetensors"]
+    raw = (tmp_path / "ck" / "model.safetensors").read_bytes()
+    header_len = int.from_bytes(raw[:8], "little")
+    assert raw[8:9] == b"{" and json.loads(raw[8:8 + header_len])["__metadata__"]["format"] == "unipixie.model_weights/1"
+    loaded, info = load_model(tmp_path / "ck")
+    assert info["step"] == 7
+    g = _grid()
+    a = Predictor(m).predict(g, [0.3], steps=3)
+    b = Predictor.load(tmp_path / "ck", device="cpu").predict(g, [0.3], steps=3)
+    assert np.array_equal(a.mpm[0].E, b.mpm[0].E) and np.array_equal(a.lbs[0].params, b.lbs[0].params)
+
+
+def test_mismatched_checkpoints_and_inputs_are_refused(tmp_path):
+    m = _model()
+    ck = tmp_path / "ck"
+    save_model(m, ck)
+    p = Predictor.load(ck, device="cpu")
+    with pytest.raises(UserError, match=r"'other-extractor'.*'test-features'"):
+        p.predict(_grid(feature_model="other-extractor"), [0.5])
+    with pytest.raises(UserError, match="7 feature channels.*expects 12"):
+        p.predict(_grid(dim=7), [0.5])
+    bad = _grid()
+    bad.features[3, 2] = np.nan
+    with pytest.raises(UserError, match="NaN"):
+        p.predict(bad, [0.5])
+    with pytest.raises(UserError, match="alpha"):
+        p.predict(_grid(), [1.5])
+    with pytest.raises(UserError, match="another model config: width"):
+        load_model(ck, expect=_config(width=32))
+    doc = json.loads((ck / "config.json").read_text())  # config.json of another architecture
+    doc["config"]["width"] = 32
+    (ck / "config.json").write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="config.json does not describe model.safetensors.*width"):
+        load_model(ck)
+    other = tmp_path / "other"  # weights of another architecture (3 MPM blocks) under this config (2 blocks)
+    save_model(_model(mpm_blocks=3), other)
+    _config().save(other / "config.json")
+    (other / "model.safetensors").write_bytes(_strip_metadata(other / "model.safetensors"))
+    with pytest.raises(UserError, match="unexpected weights.*mpm.blocks.2"):
+        load_model(other)
+    with pytest.raises(UserError, match="not a UniPixie checkpoint"):
+        Predictor.load(tmp_path / "nowhere", device="cpu")
+
+
+def _strip_metadata(path):
+    """The same weights with only the format in the metadata (as an older writer would leave them)."""
+    from safetensors.torch import load_file, save_file
+
+    tensors = load_file(str(path))
+    tmp = path.with_name("stripped.safetensors")
+    save_file(tensors, str(tmp), metadata={"format": "unipixie.model_weights/1"})
+    return tmp.read_bytes()
+
+
+# ---------------------------------------------------------------------------- the α slider
+def _field(occ, logE, alpha, cls=0):
+    K = int(occ.sum())
+    return MaterialField(GridGeometry(occ.shape[0], [0, 0, 0], 0.01), occ, np.full(K, 10.0 ** logE),
+                         np.full(K, 0.3), np.full(K, 1000.0 * (1 + alpha)), np.full(K, cls), alpha)
+
+
+def test_alpha_sweep_interpolates_in_log_space_and_is_fast(tmp_path):
+    occ = np.zeros((R, R, R), bool)
+    occ[1:7, 1:7, 1:6] = True
+    alphas = np.linspace(0, 1, 11)
+    pred = Prediction(alphas=alphas, mpm=[_field(occ, 3.0 + 4.0 * a, a, cls=0 if a < 0.5 else 1) for a in alphas])
+    grid = FeatureGrid(GridGeometry(R, [0, 0, 0], 0.01), occ, np.zeros((occ.sum(), 2)))
+    sweep = AlphaSweep.from_prediction(pred, grid)
+    f = sweep.field_at(0.25)  # halfway between 0.2 and 0.3: log10 E = 4.0, geometric mean of E
+    assert np.allclose(np.log10(f.E), 4.0, atol=1e-5)
+    assert np.allclose(f.density, 1000.0 * np.sqrt(1.2 * 1.3), rtol=1e-4)  # log-space interpolation of ρ
+    assert np.allclose(sweep.field_at(0.3).E, 10.0 ** 4.2, rtol=1e-5)
+    assert sweep.field_at(0.44).material[0] == 0 and sweep.field_at(0.46).material[0] == 1  # nearer cached α
+    loaded = AlphaSweep.load(sweep.save(tmp_path / "s.npz"))
+    assert np.array_equal(loaded.log10_E, sweep.log10_E) and np.array_equal(loaded.occupancy, occ)
+    with pytest.raises(UserError, match="alpha"):
+        sweep.field_at(1.2)
+    # 30k voxels, 11 cached α: moving the slider takes well under 50 ms
+    R2 = 40
+    big = np.zeros((R2, R2, R2), bool)
+    big.reshape(-1)[:30000] = True
+    pred = Prediction(alphas=alphas, mpm=[_field(big, 3.0 + 4.0 * a, a) for a in alphas])
+    sweep = AlphaSweep.from_prediction(pred, FeatureGrid(GridGeometry(R2, [0, 0, 0], 0.01), big, np.zeros((30000, 1))))
+    times = []
+    for a in np.linspace(0.01, 0.99, 9):
+        t0 = time.perf_counter()
+        sweep.field_at(a)
+        times.append(time.perf_counter() - t0)
+    assert float(np.median(times)) < 0.05, times
+
+
+def test_predict_sweep_is_cached_and_refine_matches_exact(tmp_path):
+    m = _model()
+    save_model(m, tmp_path / "ck")
+    p = Predictor.load(tmp_path / "ck", device="cpu")
+    g = _grid()
+    calls = []
+    original = p.predict
+    p.predict = lambda *a, **k: calls.append(1) or original(*a, **k)
+    s1 = predict_sweep(p, g, count=5, seed=2, steps=3)
+    s2 = predict_sweep(p, g, count=5, seed=2, steps=3)
+    assert len(calls) == 1 and np.array_equal(s1.log10_E, s2.log10_E)
+    exact = s1.refine(p, g, 0.5, heads=("mpm",))  # 0.5 is a cached α: refine reproduces it
+    assert np.allclose(np.log10(exact.mpm[0].E), s1.log10_E[2], atol=1e-4)
+    assert s1.spring_at(0.6).stiffness.shape == (ANCHORS,) and s1.lbs_at(0.6).params.shape == (LBS_PARAM_COUNT,)
+
+
+def test_predict_command(tmp_path):
+    from unipixie.core.cli import main
+
+    save_model(_model(), tmp_path / "ck")
+    gpath = _grid().save(tmp_path / "grid.npz")
+    out = tmp_path / "pred"
+    assert main(["predict", str(gpath), "--checkpoint", str(tmp_path / "ck"), "--alphas", "0,1", "--steps", "2",
+                 "--device", "cpu", "--out", str(out)]) == 0
+    summary = json.loads((out / "prediction.json").read_text())
+    assert [e["alpha"] for e in summary["alphas"]] == [0.0, 1.0]
+    field = MaterialField.load(out / "material_field_a1.000.npz")
+    assert field.E.shape == (int(_grid().occupancy.sum()),)
+    assert (out / "spring_a0.000.npz").is_file() and (out / "lbs_a0.000.npz").is_file()
+    _grid(feature_model="other").save(tmp_path / "other.npz")
+    assert main(["predict", str(tmp_path / "other.npz"), "--checkpoint", str(tmp_path / "ck"), "--out", str(out),
+                 "--device", "cpu"]) == 2
