@@ -349,7 +349,9 @@ class MPMSimulation(Simulation):
                  if self.settings.sort_particles else {})
         tracked = {"x": wp.zeros(m, dtype=wp.vec3, device=dev), "v": wp.zeros(m, dtype=wp.vec3, device=dev),
                    "held": wp.zeros(m, dtype=wp.int32, device=dev)}
-        lanes = int(min(1024, max(self.particle_count, len(self.tracked_rest), 1)))
+        # reduction lanes per environment: enough threads to fill a GPU, few enough to read back cheaply
+        lanes = int(min(16384 if str(dev).startswith("cuda") else 1024,
+                        max(self.particle_count, len(self.tracked_rest), 1)))
         stats = {"lo": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
                  "hi": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
                  "stats": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev)}
@@ -445,6 +447,7 @@ class MPMSimulation(Simulation):
         Env["drag"].assign(drag.astype(np.float32))
         Env["friction"].assign(friction.astype(np.float32))
         buf.lost.zero_()
+        self._p2g_kernel = self._choose_p2g(yield_stress)
 
         times = self.frame_times
         F_count = len(times)
@@ -546,6 +549,14 @@ class MPMSimulation(Simulation):
         return out
 
     # ------------------------------------------------------------------ pieces of a run
+    def _choose_p2g(self, yield_stress: np.ndarray):
+        """The elastic-only P2G when every deforming particle is purely elastic fixed-corotated and no
+        environment has the plasticity effect, else the general one (same results for such runs)."""
+        deforming = [materials.BY_ID[int(i)] for i in np.unique(self.material.material)]
+        elastic = all(c.held_fixed or c.elasticity == "fixed_corotated" and c.plasticity == "none"
+                      and not math.isfinite(float(c.params.get("yield_stress", math.inf))) for c in deforming)
+        return self._k.p2g_elastic if elastic and np.all(np.isinf(yield_stress)) else self._k.p2g_general
+
     def _frame_stats(self, buf: _Buffers, E: int, N: int, M: int, frame: int):
         """Per environment: (E, 3) lower and upper bounds, (E,) max speed and max wave speed; raises on NaN."""
         wp, k = self._wp, self._k
@@ -612,7 +623,7 @@ class MPMSimulation(Simulation):
         dx = self.dx
         inv_dx = 1.0 / dx
         n = E * N
-        p2g = wp.launch(k.p2g, dim=n, device=dev, record_cmd=True,
+        p2g = wp.launch(self._p2g_kernel, dim=n, device=dev, record_cmd=True,
                         inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"], P["vol"], P["mu"],
                                 P["lam"], P["code"], self._laws, Env["dt"], Env["steps"], Env["yield"], Env["eta"], Env["origin"],
                                 N, nodes, dims, dx, inv_dx, 0],

@@ -199,126 +199,160 @@ def stencil_inside(base: wp.vec3, dims: wp.vec3i):
 
 
 # ------------------------------------------------------------------------------ substep kernels
-@wp.kernel
-def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
-        mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
-        lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
-        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
-        env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
-        n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, substep: int,
-        grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
-    """Deformation update, plasticity, stress and the fused scatter of mass and momentum."""
-    p = wp.tid()
-    env = p / n_per_env
-    if substep >= env_steps[env]:
-        return
-    dt = env_dt[env]
-    xp = x[p]
-    if not wp.isfinite(xp):
-        wp.atomic_add(lost, env, 1)
-        return
-    origin = env_origin[env]
-    base = stencil_base(xp, origin, inv_dx)
-    if not stencil_inside(base, dims):
-        wp.atomic_add(lost, env, 1)
-        return
+@wp.func
+def elastic_fixed_corotated(Fn: wp.mat33, q0: wp.quat, mu: float, lam: float):
+    """Purely elastic fixed-corotated law without an SVD: (Kirchhoff stress Pa, rotation quaternion, J)."""
+    q = rotation_part(Fn, q0)
+    R = wp.quat_to_matrix(q)
+    J = wp.determinant(Fn)
+    tau = 2.0 * mu * (Fn - R) @ wp.transpose(Fn) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
+    return tau, q, J
 
-    c = code[p]
-    held = c >= HELD_FLAG
-    law = laws[c % HELD_FLAG]
-    m = mass[p]
-    Cp = C[p]
+
+@wp.func
+def constitutive_update(law: ClassLaw, Fn: wp.mat33, q0: wp.quat, state: float, mu: float, lam: float,
+                        effect_yield: float):
+    """The class's law on the trial deformation gradient ``Fn``.
+
+    Returns (Kirchhoff stress τ Pa, elastic F after the return mapping, rotation quaternion of the
+    fast path, plastic state, J).  ``effect_yield`` is the plasticity effect's von Mises yield stress.
+    """
+    ys = wp.min(law.yield_stress, effect_yield) * wp.exp(-law.softening * state)
+    if law.elastic == LAW_FIXED_COROTATED and law.plastic == PLASTIC_NONE and ys >= 1.0e30:
+        tau, q, J = elastic_fixed_corotated(Fn, q0, mu, lam)
+        return tau, Fn, q, state, J
+    if law.elastic == LAW_WEAKLY_COMPRESSIBLE:
+        # no tension (p >= 0: a free-surface fluid pulls nothing) and no memory of shear or expansion
+        Jf = wp.clamp(wp.determinant(Fn), MIN_FLUID_J, 1.0)
+        bulk = lam + 2.0 / 3.0 * mu
+        tau_f = wp.identity(n=3, dtype=float) * (bulk * Jf * (Jf - 1.0))
+        return tau_f, wp.identity(n=3, dtype=float) * wp.pow(Jf, 1.0 / 3.0), q0, state, Jf
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(Fn, U, sig, V)
+    projected = bool(False)
+    new_state = state
+    mu_e = mu
+    lam_e = lam
+    if law.plastic == PLASTIC_SNOW:
+        clamped = wp.vec3(wp.clamp(sig[0], 1.0 - law.theta_c, 1.0 + law.theta_s),
+                          wp.clamp(sig[1], 1.0 - law.theta_c, 1.0 + law.theta_s),
+                          wp.clamp(sig[2], 1.0 - law.theta_c, 1.0 + law.theta_s))
+        new_state = state * (sig[0] * sig[1] * sig[2]) / (clamped[0] * clamped[1] * clamped[2])
+        sig = clamped
+        projected = True
+        harden = wp.min(wp.exp(law.hardening * (1.0 - new_state)), law.max_hardening)
+        mu_e = mu * harden
+        lam_e = lam * harden
+    elif law.plastic == PLASTIC_DRUCKER_PRAGER:
+        r = drucker_prager_return(sig, mu, lam, law.dp_alpha)
+        if r[3] > 0.0:
+            sig = wp.vec3(r[0], r[1], r[2])
+            projected = True
+    elif ys < 1.0e30:  # von Mises: the class's own yield (metal, plasticine) or the effect on an elastic class
+        r = von_mises_return(sig, mu, ys)
+        if r[3] > 0.0:
+            sig = wp.vec3(r[0], r[1], r[2])
+            new_state = state + wp.sqrt(2.0 / 3.0) * r[3]
+            projected = True
+    Fe = Fn
+    if projected:
+        Fe = U @ wp.diag(sig) @ wp.transpose(V)
+    J = sig[0] * sig[1] * sig[2]
     tau = wp.mat33(0.0)
-    if law.held == 0:
-        mu = mu_p[p]
-        lam = lam_p[p]
-        Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
-        state = plastic[p]
-        J = float(1.0)
-        ys = wp.min(law.yield_stress, env_yield[env]) * wp.exp(-law.softening * state)
-        if law.elastic == LAW_FIXED_COROTATED and law.plastic == PLASTIC_NONE and ys >= 1.0e30:
-            # purely elastic fixed-corotated (the base model): polar rotation without an SVD
-            q = rotation_part(Fn, rot[p])
-            rot[p] = q
-            R = wp.quat_to_matrix(q)
-            J = wp.determinant(Fn)
-            tau = 2.0 * mu * (Fn - R) @ wp.transpose(Fn) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
-        elif law.elastic == LAW_WEAKLY_COMPRESSIBLE:
-            # no tension (p >= 0: a free-surface fluid pulls nothing) and no memory of shear or expansion
-            J = wp.clamp(wp.determinant(Fn), MIN_FLUID_J, 1.0)
-            Fn = wp.identity(n=3, dtype=float) * wp.pow(J, 1.0 / 3.0)
-            bulk = lam + 2.0 / 3.0 * mu
-            tau = wp.identity(n=3, dtype=float) * (bulk * J * (J - 1.0))
-        else:
-            U = wp.mat33()
-            sig = wp.vec3()
-            V = wp.mat33()
-            wp.svd3(Fn, U, sig, V)
-            projected = bool(False)
-            if law.plastic == PLASTIC_SNOW:
-                clamped = wp.vec3(wp.clamp(sig[0], 1.0 - law.theta_c, 1.0 + law.theta_s),
-                                  wp.clamp(sig[1], 1.0 - law.theta_c, 1.0 + law.theta_s),
-                                  wp.clamp(sig[2], 1.0 - law.theta_c, 1.0 + law.theta_s))
-                state = state * (sig[0] * sig[1] * sig[2]) / (clamped[0] * clamped[1] * clamped[2])
-                sig = clamped
-                projected = True
-                harden = wp.min(wp.exp(law.hardening * (1.0 - state)), law.max_hardening)
-                mu = mu * harden
-                lam = lam * harden
-            elif law.plastic == PLASTIC_DRUCKER_PRAGER:
-                r = drucker_prager_return(sig, mu, lam, law.dp_alpha)
-                if r[3] > 0.0:
-                    sig = wp.vec3(r[0], r[1], r[2])
-                    projected = True
-            elif law.plastic == PLASTIC_VON_MISES or law.plastic == PLASTIC_NONE:
-                # the class's own yield (metal, plasticine) or the plasticity effect on an elastic class
-                if ys < 1.0e30:
-                    r = von_mises_return(sig, mu, ys)
-                    if r[3] > 0.0:
-                        sig = wp.vec3(r[0], r[1], r[2])
-                        state = state + wp.sqrt(2.0 / 3.0) * r[3]
-                        projected = True
-            if projected:
-                Fn = U @ wp.diag(sig) @ wp.transpose(V)
-            J = sig[0] * sig[1] * sig[2]
-            if law.elastic == LAW_FIXED_COROTATED:
-                tau = kirchhoff_fixed_corotated(Fn, U, sig, V, mu, lam)
-            else:
-                tau = kirchhoff_hencky(U, sig, mu, lam)
-        eta = env_eta[env]
-        if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
-            tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
-        F[p] = Fn
-        plastic[p] = state
+    if law.elastic == LAW_FIXED_COROTATED:
+        tau = kirchhoff_fixed_corotated(Fe, U, sig, V, mu_e, lam_e)
+    else:
+        tau = kirchhoff_hencky(U, sig, mu_e, lam_e)
+    return tau, Fe, q0, new_state, J
 
-    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
-    vp = v[p]
-    if held:
-        vp = wp.vec3(0.0)
-    fx = (xp - origin) * inv_dx - base
-    w = bspline_weights(fx)
-    # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
-    # so it is a0 + i a_x + j a_y + k a_z with the columns a_* of affine * dx: built up incrementally.
-    cols = wp.transpose(affine * dx)
-    a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
-    ib = int(base[0])
-    jb = int(base[1])
-    kb = int(base[2])
-    block = env * nodes_per_env
-    for i in range(3):
-        ai = a0 + float(i) * cols[0]
-        wi = w[i, 0]
-        for j in range(3):
-            aij = ai + float(j) * cols[1]
-            wij = wi * w[j, 1]
-            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-            for k in range(3):
-                weight = wij * w[k, 2]
-                mom = weight * (aij + float(k) * cols[2])
-                wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
-                if held:
-                    wp.atomic_add(grid_held, row + k, weight * m)
+
+def _make_p2g(general: bool):
+    """The P2G kernel.  ``general=False`` compiles only the elastic fixed-corotated law (far fewer
+    registers on a GPU), for runs whose deforming material is all jelly without plasticity."""
+
+    def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+            F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+            mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
+            lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+            env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
+            env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
+            n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, substep: int,
+            grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
+        """Deformation update, plasticity, stress and the fused scatter of mass and momentum."""
+        p = wp.tid()
+        env = p / n_per_env
+        if substep >= env_steps[env]:
+            return
+        dt = env_dt[env]
+        xp = x[p]
+        if not wp.isfinite(xp):
+            wp.atomic_add(lost, env, 1)
+            return
+        origin = env_origin[env]
+        base = stencil_base(xp, origin, inv_dx)
+        if not stencil_inside(base, dims):
+            wp.atomic_add(lost, env, 1)
+            return
+
+        c = code[p]
+        held = c >= HELD_FLAG
+        law = laws[c % HELD_FLAG]
+        m = mass[p]
+        Cp = C[p]
+        tau = wp.mat33(0.0)
+        if law.held == 0:
+            Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
+            J = float(1.0)
+            q = wp.quat()
+            if wp.static(general):
+                state = float(0.0)
+                tau, Fn, q, state, J = constitutive_update(law, Fn, rot[p], plastic[p], mu_p[p], lam_p[p],
+                                                           env_yield[env])
+                plastic[p] = state
+            else:
+                tau, q, J = elastic_fixed_corotated(Fn, rot[p], mu_p[p], lam_p[p])
+            eta = env_eta[env]
+            if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
+                tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
+            F[p] = Fn
+            rot[p] = q
+
+        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
+        vp = v[p]
+        if held:
+            vp = wp.vec3(0.0)
+        fx = (xp - origin) * inv_dx - base
+        w = bspline_weights(fx)
+        # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
+        # so it is a0 + i a_x + j a_y + k a_z with the columns a_* of affine * dx: built up incrementally.
+        cols = wp.transpose(affine * dx)
+        a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+        ib = int(base[0])
+        jb = int(base[1])
+        kb = int(base[2])
+        block = env * nodes_per_env
+        for i in range(3):
+            ai = a0 + float(i) * cols[0]
+            wi = w[i, 0]
+            for j in range(3):
+                aij = ai + float(j) * cols[1]
+                wij = wi * w[j, 1]
+                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                for k in range(3):
+                    weight = wij * w[k, 2]
+                    mom = weight * (aij + float(k) * cols[2])
+                    wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
+                    if held:
+                        wp.atomic_add(grid_held, row + k, weight * m)
+
+    p2g.__name__ = p2g.__qualname__ = "p2g_general" if general else "p2g_elastic"
+    return wp.kernel(p2g)
+
+
+p2g_general = _make_p2g(True)
+p2g_elastic = _make_p2g(False)
 
 
 @wp.kernel

@@ -137,6 +137,19 @@ def test_rerun_with_other_effects_is_deterministic_and_independent():
     assert np.abs(dragged.positions - first.positions).max() > 1e-3
 
 
+def test_elastic_only_kernel_matches_general_kernel(monkeypatch):
+    """Runs of pure jelly use a P2G compiled for the elastic law only; the general kernel gives the same."""
+    frames = np.linspace(0.0, 0.1, 4)
+    sim = mpm.prepare(cube(origin=(0, 0, 0.02)), JELLY, Scenario(gravity=[0, 0, -G], ground_height=0.0,
+                                                                 initial_angular_velocity=[1, 2, 0]), frames)
+    assert sim._choose_p2g(np.array([np.inf])) is sim._k.p2g_elastic
+    assert sim._choose_p2g(np.array([1e4])) is sim._k.p2g_general  # the plasticity effect needs the general law
+    fast = sim.run([fx.make("material_damping", eta=1.0)])
+    monkeypatch.setattr(sim, "_choose_p2g", lambda yield_stress: sim._k.p2g_general)
+    general = sim.run([fx.make("material_damping", eta=1.0)])
+    np.testing.assert_array_equal(fast.positions, general.positions)
+
+
 def test_run_batch_equals_separate_runs():
     """Environments batched into one launch per kernel give the trajectories of separate runs."""
     frames = np.linspace(0.0, 0.15, 6)

@@ -1,0 +1,323 @@
+"""``unipixie bench mpm``: MPM throughput in particle-substeps per second, against a reference APIC solver.
+
+Case: a cube of jelly (fixed-corotated, E = 1 MPa, ν = 0.3, 1000 kg/m³) as a lattice of N
+particles, 2 per cell per axis (8 per cell), falling at 1 m/s just above a frictionless ground
+under gravity.  Both solvers take the same particles, cell size, time step and substep count.
+
+* ours: :func:`unipixie.solvers.mpm.prepare` once, then ``sim.run([])`` of one frame of
+  ``--substeps`` substeps (the time step is capped with ``max_dt``); the timed run includes
+  everything a diagnosis re-run pays (initial-state upload, grid placement, particle sort,
+  stepping, divergence checks, reading the tracked points back).
+* reference: a straightforward PhysGaussian-style APIC solver written below (stepping only
+  timed; initial state uploaded once): per substep it launches six kernels — clear the grid,
+  compute stress (an SVD of every particle's F and a per-particle stress write), P2G (APIC
+  momentum + stress, separate float and vec3 atomics into 3-D arrays), grid normalisation +
+  gravity, ground collider, G2P (velocity, APIC C, F update, advection) — over a fixed cubic grid
+  around the body, with particles in their original (unsorted) order and the material model
+  chosen by branching on a model struct.
+
+The metric is N × substeps / median wall time over ``--runs`` runs (after one warm-up run).
+After timing, the two solvers' particle positions are compared (they solve the same
+discretised equations; differences come from transfer details and float order).
+"""
+
+# No ``from __future__ import annotations``: the reference kernels are defined inside a function (so
+# that importing this module for ``unipixie --help`` does not import Warp) and Warp must evaluate their
+# annotations there.
+import math
+import statistics
+import time
+
+import numpy as np
+
+HELP = "MPM solver throughput (particle-substeps/s) at several particle counts, with a reference APIC solver"
+
+E_BENCH, NU_BENCH, RHO_BENCH = 1.0e6, 0.3, 1000.0
+SPACING = 0.005  # m between particles; dx = 2 * SPACING
+DROP_SPEED = 1.0  # m/s
+
+
+def add_arguments(p):
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
+    p.add_argument("--sizes", default="50000,200000,1000000",
+                   help="comma-separated particle counts (rounded to cubes; default: 50000,200000,1000000)")
+    p.add_argument("--runs", type=int, default=3, help="timed runs per size and solver (median; default 3)")
+    p.add_argument("--substeps", type=int, default=None,
+                   help="substeps per timed run (default: 100 on a GPU, 10 on the CPU)")
+    p.add_argument("--no-reference", action="store_true", help="skip the reference solver")
+    p.add_argument("--no-sort", action="store_true",
+                   help="run our solver without its per-chunk cell sort of the particles (to measure what it buys)")
+
+
+# ------------------------------------------------------------------------------------------ reference solver
+def _reference_kernels():
+    """Build the reference solver's kernels (a Warp module of their own, compiled on first use)."""
+    import warp as wp
+
+    @wp.struct
+    class RefModel:
+        material: int  # 0 = fixed corotated (the only one the benchmark uses; others branch away)
+        n_grid: int
+        dx: float
+        inv_dx: float
+        dt: float
+        gravity: wp.vec3
+        ground_z: float
+        grid_origin: wp.vec3
+
+    @wp.kernel
+    def ref_zero_grid(grid_m: wp.array3d(dtype=float), grid_v_in: wp.array3d(dtype=wp.vec3),
+                      grid_v_out: wp.array3d(dtype=wp.vec3)):
+        i, j, k = wp.tid()
+        grid_m[i, j, k] = 0.0
+        grid_v_in[i, j, k] = wp.vec3(0.0)
+        grid_v_out[i, j, k] = wp.vec3(0.0)
+
+    @wp.kernel
+    def ref_compute_stress(model: RefModel, F_trial: wp.array(dtype=wp.mat33), F: wp.array(dtype=wp.mat33),
+                           mu: wp.array(dtype=float), lam: wp.array(dtype=float),
+                           stress: wp.array(dtype=wp.mat33)):
+        p = wp.tid()
+        Fp = F_trial[p]
+        U = wp.mat33()
+        sig = wp.vec3()
+        V = wp.mat33()
+        wp.svd3(Fp, U, sig, V)
+        J = sig[0] * sig[1] * sig[2]
+        s = wp.mat33(0.0)
+        if model.material == 0:
+            R = U @ wp.transpose(V)
+            P = 2.0 * mu[p] * (Fp - R) + lam[p] * J * (J - 1.0) * wp.transpose(wp.inverse(Fp))
+            s = P @ wp.transpose(Fp)
+        elif model.material == 1:  # StVK-Hencky branch (not used by the benchmark case)
+            eps = wp.vec3(wp.log(sig[0]), wp.log(sig[1]), wp.log(sig[2]))
+            tr = eps[0] + eps[1] + eps[2]
+            s = U @ wp.diag(2.0 * mu[p] * eps + wp.vec3(lam[p] * tr)) @ wp.transpose(U)
+        F[p] = Fp
+        stress[p] = s
+
+    @wp.kernel
+    def ref_p2g(model: RefModel, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                C: wp.array(dtype=wp.mat33), stress: wp.array(dtype=wp.mat33), vol: wp.array(dtype=float),
+                mass: wp.array(dtype=float), grid_m: wp.array3d(dtype=float), grid_v_in: wp.array3d(dtype=wp.vec3)):
+        p = wp.tid()
+        g = (x[p] - model.grid_origin) * model.inv_dx
+        base = wp.vec3i(int(g[0] - 0.5), int(g[1] - 0.5), int(g[2] - 0.5))
+        fx = g - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        wa = wp.vec3(1.5) - fx
+        wb = fx - wp.vec3(1.0)
+        wc = fx - wp.vec3(0.5)
+        w = wp.mat33(0.5 * wa[0] * wa[0], 0.5 * wa[1] * wa[1], 0.5 * wa[2] * wa[2],
+                     0.75 - wb[0] * wb[0], 0.75 - wb[1] * wb[1], 0.75 - wb[2] * wb[2],
+                     0.5 * wc[0] * wc[0], 0.5 * wc[1] * wc[1], 0.5 * wc[2] * wc[2])
+        stress_term = (-model.dt * vol[p] * 4.0 * model.inv_dx * model.inv_dx) * stress[p]
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * model.dx
+                    weight = w[i, 0] * w[j, 1] * w[k, 2]
+                    ix = base[0] + i
+                    iy = base[1] + j
+                    iz = base[2] + k
+                    momentum = weight * mass[p] * (v[p] + C[p] @ dpos) + weight * (stress_term @ dpos)
+                    wp.atomic_add(grid_v_in, ix, iy, iz, momentum)
+                    wp.atomic_add(grid_m, ix, iy, iz, weight * mass[p])
+
+    @wp.kernel
+    def ref_grid_normalise(model: RefModel, grid_m: wp.array3d(dtype=float), grid_v_in: wp.array3d(dtype=wp.vec3),
+                           grid_v_out: wp.array3d(dtype=wp.vec3)):
+        i, j, k = wp.tid()
+        if grid_m[i, j, k] > 1.0e-15:
+            grid_v_out[i, j, k] = grid_v_in[i, j, k] / grid_m[i, j, k] + model.dt * model.gravity
+
+    @wp.kernel
+    def ref_ground_collider(model: RefModel, grid_v_out: wp.array3d(dtype=wp.vec3)):
+        i, j, k = wp.tid()
+        z = model.grid_origin[2] + float(k) * model.dx
+        if z <= model.ground_z + 0.01 * model.dx:
+            vel = grid_v_out[i, j, k]
+            if vel[2] < 0.0:
+                grid_v_out[i, j, k] = wp.vec3(vel[0], vel[1], 0.0)
+
+    @wp.kernel
+    def ref_g2p(model: RefModel, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+                F: wp.array(dtype=wp.mat33), F_trial: wp.array(dtype=wp.mat33), grid_v_out: wp.array3d(dtype=wp.vec3)):
+        p = wp.tid()
+        g = (x[p] - model.grid_origin) * model.inv_dx
+        base = wp.vec3i(int(g[0] - 0.5), int(g[1] - 0.5), int(g[2] - 0.5))
+        fx = g - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        wa = wp.vec3(1.5) - fx
+        wb = fx - wp.vec3(1.0)
+        wc = fx - wp.vec3(0.5)
+        w = wp.mat33(0.5 * wa[0] * wa[0], 0.5 * wa[1] * wa[1], 0.5 * wa[2] * wa[2],
+                     0.75 - wb[0] * wb[0], 0.75 - wb[1] * wb[1], 0.75 - wb[2] * wb[2],
+                     0.5 * wc[0] * wc[0], 0.5 * wc[1] * wc[1], 0.5 * wc[2] * wc[2])
+        new_v = wp.vec3(0.0)
+        new_C = wp.mat33(0.0)
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    dpos = wp.vec3(float(i), float(j), float(k)) - fx
+                    weight = w[i, 0] * w[j, 1] * w[k, 2]
+                    gv = grid_v_out[base[0] + i, base[1] + j, base[2] + k]
+                    new_v = new_v + weight * gv
+                    new_C = new_C + wp.outer(weight * gv, dpos) * (4.0 * model.inv_dx)
+        v[p] = new_v
+        C[p] = new_C
+        F_trial[p] = (wp.identity(n=3, dtype=float) + model.dt * new_C) @ F[p]
+        x[p] = x[p] + model.dt * new_v
+
+    return RefModel, ref_zero_grid, ref_compute_stress, ref_p2g, ref_grid_normalise, ref_ground_collider, ref_g2p
+
+
+class ReferenceAPIC:
+    """The reference solver's state for one particle set (fixed cubic grid of ``n_grid``³ nodes)."""
+
+    def __init__(self, wp, device, points, velocity, dx, dt, gravity, ground_z, margin_cells=8):
+        (self.Model, self.k_zero, self.k_stress, self.k_p2g, self.k_norm, self.k_ground,
+         self.k_g2p) = _reference_kernels()
+        self.wp, self.device = wp, device
+        n = len(points)
+        lo, hi = points.min(0), points.max(0)
+        n_grid = int(math.ceil(float((hi - lo).max()) / dx)) + 2 * margin_cells
+        model = self.Model()
+        model.material = 0
+        model.n_grid = n_grid
+        model.dx = dx
+        model.inv_dx = 1.0 / dx
+        model.dt = dt
+        model.gravity = wp.vec3(*gravity)
+        model.ground_z = ground_z
+        origin = np.floor((lo - margin_cells * dx - np.array([0.0, 0.0, ground_z])) / dx) * dx + [0.0, 0.0, ground_z]
+        model.grid_origin = wp.vec3(*origin)
+        self.model, self.n_grid = model, n_grid
+        mu = E_BENCH / (2 * (1 + NU_BENCH))
+        lam = E_BENCH * NU_BENCH / ((1 + NU_BENCH) * (1 - 2 * NU_BENCH))
+        vol = (dx / 2) ** 3
+        f32 = np.float32
+        self.x = wp.array(points.astype(f32), dtype=wp.vec3, device=device)
+        self.v = wp.array(velocity.astype(f32), dtype=wp.vec3, device=device)
+        self.C = wp.zeros(n, dtype=wp.mat33, device=device)
+        eye = np.tile(np.eye(3, dtype=f32), (n, 1, 1))
+        self.F = wp.array(eye, dtype=wp.mat33, device=device)
+        self.F_trial = wp.array(eye, dtype=wp.mat33, device=device)
+        self.stress = wp.zeros(n, dtype=wp.mat33, device=device)
+        self.mu = wp.array(np.full(n, mu, f32), device=device)
+        self.lam = wp.array(np.full(n, lam, f32), device=device)
+        self.vol = wp.array(np.full(n, vol, f32), device=device)
+        self.mass = wp.array(np.full(n, vol * RHO_BENCH, f32), device=device)
+        shape = (n_grid, n_grid, n_grid)
+        self.grid_m = wp.zeros(shape, dtype=float, device=device)
+        self.grid_v_in = wp.zeros(shape, dtype=wp.vec3, device=device)
+        self.grid_v_out = wp.zeros(shape, dtype=wp.vec3, device=device)
+        self.n = n
+
+    def step(self, substeps: int) -> None:
+        wp, dev, m = self.wp, self.device, self.model
+        shape = (self.n_grid,) * 3
+        for _ in range(substeps):
+            wp.launch(self.k_zero, dim=shape, inputs=[self.grid_m, self.grid_v_in, self.grid_v_out], device=dev)
+            wp.launch(self.k_stress, dim=self.n, inputs=[m, self.F_trial, self.F, self.mu, self.lam, self.stress],
+                      device=dev)
+            wp.launch(self.k_p2g, dim=self.n, inputs=[m, self.x, self.v, self.C, self.stress, self.vol, self.mass,
+                                                      self.grid_m, self.grid_v_in], device=dev)
+            wp.launch(self.k_norm, dim=shape, inputs=[m, self.grid_m, self.grid_v_in, self.grid_v_out], device=dev)
+            wp.launch(self.k_ground, dim=shape, inputs=[m, self.grid_v_out], device=dev)
+            wp.launch(self.k_g2p, dim=self.n, inputs=[m, self.x, self.v, self.C, self.F, self.F_trial,
+                                                      self.grid_v_out], device=dev)
+
+
+# ------------------------------------------------------------------------------------------ the benchmark
+def _cube(count: int) -> np.ndarray:
+    """A lattice cube of about ``count`` particles in random order (as a Gaussian-splat point cloud comes)."""
+    side = max(2, int(round(count ** (1.0 / 3.0))))
+    idx = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pts = (idx + 0.5) * SPACING
+    pts[:, 2] += 2 * SPACING  # just above the ground at z = 0
+    return pts[np.random.default_rng(0).permutation(len(pts))]
+
+
+def _timed(fn, runs: int, wp, device) -> list[float]:
+    times = []
+    for _ in range(runs):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def _label(count: int) -> str:
+    """Case label of a requested size: 50000 -> '50k', 1000000 -> '1M'."""
+    return f"{count / 1e6:g}M" if count >= 1_000_000 else f"{count / 1e3:g}k" if count >= 1000 else str(count)
+
+
+def run(args) -> list[dict]:
+    from ...core.errors import UserError
+    from ...solvers import mpm
+    from ...solvers.body import Body
+    from ...solvers.material_sampling import HomogeneousMaterial
+    from ...solvers.scenario import Scenario
+    from ...solvers.warp_runtime import device_description, init_warp, resolve_device
+
+    wp = init_warp()
+    device = resolve_device(args.device)
+    try:
+        sizes = [int(float(s)) for s in str(args.sizes).split(",") if s.strip()]
+    except ValueError:
+        raise UserError(f"--sizes must be comma-separated particle counts, got {args.sizes!r}") from None
+    if not sizes or min(sizes) < 8:
+        raise UserError("--sizes needs particle counts of at least 8")
+    if args.runs < 1:
+        raise UserError("--runs must be at least 1")
+    substeps = args.substeps or (100 if device.startswith("cuda") else 10)
+    if substeps < 1:
+        raise UserError("--substeps must be at least 1")
+    described = device_description(device)
+    dx = 2 * SPACING
+    c = math.sqrt(E_BENCH * (1 - NU_BENCH) / ((1 + NU_BENCH) * (1 - 2 * NU_BENCH)) / RHO_BENCH)
+    dt = 0.3 * dx / (c + DROP_SPEED + 9.81 * 0.01)  # below every CFL bound of the run: both solvers use it
+    gravity = (0.0, 0.0, -9.81)
+    results = []
+    for requested in sizes:
+        points = _cube(requested)
+        n = len(points)
+        body = Body(points=points, point_volume=SPACING ** 3, tracked_points=points[:: max(1, n // 1000)])
+        scenario = Scenario(gravity=list(gravity), ground_height=0.0, initial_velocity=[0.0, 0.0, -DROP_SPEED])
+        sim = mpm.prepare(body, HomogeneousMaterial(E_BENCH, NU_BENCH, RHO_BENCH, "jelly"), scenario,
+                          [0.0, substeps * dt], device=device,
+                          settings={"dx": dx, "max_dt": dt, "sort_particles": not args.no_sort})
+        last = {"traj": sim.run([])}  # warm-up
+        ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
+        ours_rate = n * substeps / statistics.median(ours)
+        label = _label(requested) + (", unsorted" if args.no_sort else "")
+        entry = {"case": f"{label} particles, jelly, drop", "device": described,
+                 "metric": "particle_substeps_per_s", "value": ours_rate, "runs": args.runs,
+                 "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ours),
+                 "grid_dims": last["traj"].meta["grid_dims"]}
+        if not args.no_reference:
+            velocity = np.tile([0.0, 0.0, -DROP_SPEED], (n, 1))
+            ref = ReferenceAPIC(wp, device, points, velocity, dx, dt, gravity, 0.0)
+            ref.step(1)  # warm-up (compiles)
+            ref_times = []
+            for _ in range(args.runs):
+                ref = ReferenceAPIC(wp, device, points, velocity, dx, dt, gravity, 0.0)
+                ref_times += _timed(lambda: ref.step(substeps), 1, wp, device)
+            ref_rate = n * substeps / statistics.median(ref_times)
+            # same physics: compare final particle positions after the same substeps
+            check = sim.run([], particle_states=True).particle_positions[-1]
+            diff = float(np.abs(check - ref.x.numpy()).max())
+            entry["vs"] = {"what": "reference PhysGaussian-style APIC kernels, same run", "ratio": ours_rate / ref_rate}
+            entry["max_position_difference_m"] = diff
+            results.append(entry)
+            results.append({"case": f"{_label(requested)} particles, jelly, drop, reference APIC", "device": described,
+                            "metric": "particle_substeps_per_s", "value": ref_rate, "runs": args.runs,
+                            "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ref_times),
+                            "grid_dims": [ref.n_grid] * 3})
+        else:
+            results.append(entry)
+        print(f"  {n:,} particles: {ours_rate:.3g} particle-substeps/s"
+              + (f" (reference {results[-1]['value']:.3g}, x{entry['vs']['ratio']:.2f}; positions agree to "
+                 f"{entry['max_position_difference_m']:.1e} m)" if "vs" in entry else ""), flush=True)
+    return results
