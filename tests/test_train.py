@@ -1,0 +1,162 @@
+"""Training: the sample format, resume, data-parallel gradients (2 gloo processes) and the command line."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from unipixie.core.cli import main
+from unipixie.core.errors import UserError
+from unipixie.core.model.checkpoint import TRAINING_JSON, is_checkpoint
+from unipixie.training.sample_format import (SAMPLE_FORMAT, TrainingSample, data_fingerprint, list_samples)
+from unipixie.training.synthetic import make_dataset, make_sample
+from unipixie.training.train import TrainSettings, train
+
+TINY = dict(preset="tiny", device="cpu", precision="fp32", save_every=10 ** 9, log_every=1, lr=1e-3, warmup=2)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train-data") / "data"
+    make_dataset(root, 4, resolution=8, feature_dim=8, anchors=6, seed=1)
+    return root
+
+
+# ---------------------------------------------------------------------------- sample format
+def test_sample_round_trip_and_validation(tmp_path):
+    s = make_sample(3, resolution=8, feature_dim=5, anchors=4)
+    back = TrainingSample.load(s.save(tmp_path / "s.npz"))
+    assert back.object_id == s.object_id and np.array_equal(back.grid.occupancy, s.grid.occupancy)
+    assert np.array_equal(back.mpm.E_max, s.mpm.E_max) and np.array_equal(back.lbs.params, s.lbs.params)
+    assert back.spring.softness_max == pytest.approx(s.spring.softness_max)
+    with np.load(tmp_path / "s.npz") as z:
+        d = {k: z[k] for k in z.files}
+    assert str(d["format"]) == SAMPLE_FORMAT
+    bad = dict(d)
+    bad["mpm_E_min"] = d["mpm_E_max"] * 2.0
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(UserError, match=r"bad.npz.*mpm_E_min > mpm_E_max"):
+        TrainingSample.load(tmp_path / "bad.npz")
+    partial = {k: v for k, v in d.items() if k != "lbs_nu_max"}
+    np.savez(tmp_path / "partial.npz", **partial)
+    with pytest.raises(UserError, match="incomplete lbs group"):
+        TrainingSample.load(tmp_path / "partial.npz")
+    no_heads = {k: v for k, v in d.items() if not k.startswith(("lbs_", "spring_"))}  # optional groups
+    np.savez(tmp_path / "mpm_only.npz", **no_heads)
+    only = TrainingSample.load(tmp_path / "mpm_only.npz")
+    assert only.lbs is None and only.spring is None
+    nan = dict(d)
+    nan["features"] = d["features"].copy()
+    nan["features"][0, 0] = np.nan
+    np.savez(tmp_path / "nan.npz", **nan)
+    with pytest.raises(UserError, match="NaN"):
+        TrainingSample.load(tmp_path / "nan.npz")
+
+
+def test_dataset_listing_split_and_fingerprint(tmp_path):
+    paths = make_dataset(tmp_path / "d", 3, resolution=8, feature_dim=4, anchors=4, test_fraction=0.34)
+    assert [p.name for p in list_samples(tmp_path / "d", "train")] == [p.name for p in paths[:2]]
+    assert [p.name for p in list_samples(tmp_path / "d", "test")] == [paths[2].name]
+    f1 = data_fingerprint(paths)
+    make_sample(99, resolution=8, feature_dim=4, anchors=4).save(paths[0])
+    assert data_fingerprint(paths) != f1
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="no training samples"):
+        list_samples(tmp_path / "empty")
+    with pytest.raises(UserError, match="not found"):
+        list_samples(tmp_path / "missing")
+
+
+# ---------------------------------------------------------------------------- resume
+def test_resume_gives_the_same_next_step_losses(data, tmp_path):
+    full = train(TrainSettings(data=str(data), out=str(tmp_path / "full"), steps=5, batch=2, **TINY))
+    first = train(TrainSettings(data=str(data), out=str(tmp_path / "part"), steps=5, batch=2, stop_after=3, **TINY))
+    assert first["final_step"] == 3 and is_checkpoint(tmp_path / "part")
+    assert json.loads((tmp_path / "part" / TRAINING_JSON).read_text())["step"] == 3
+    rest = train(TrainSettings(data=str(data), out=str(tmp_path / "part"), steps=5, batch=2, resume=True, **TINY))
+    assert rest["start_step"] == 3 and rest["final_step"] == 5
+    assert first["losses"] == full["losses"][:3]
+    assert np.allclose(rest["losses"], full["losses"][3:], rtol=1e-6, atol=0), (rest["losses"], full["losses"])
+    # the finished runs hold the same weights
+    a, b = load_file(str(tmp_path / "full" / "model.safetensors")), load_file(str(tmp_path / "part" / "model.safetensors"))
+    assert all(torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7) for k in a)
+
+
+def test_training_refuses_to_overwrite_and_mismatched_resume(data, tmp_path):
+    out = tmp_path / "run"
+    train(TrainSettings(data=str(data), out=str(out), steps=1, batch=1, **TINY))
+    with pytest.raises(UserError, match="already holds a checkpoint; pass --resume"):
+        train(TrainSettings(data=str(data), out=str(out), steps=2, batch=1, **TINY))
+    with pytest.raises(UserError, match="another model config: width"):
+        train(TrainSettings(data=str(data), out=str(out), steps=2, batch=1, resume=True, model={"width": 32}, **TINY))
+    other = tmp_path / "other-data"
+    make_dataset(other, 2, resolution=8, feature_dim=8, anchors=6, seed=7)
+    with pytest.raises(UserError, match="differs from the data the checkpoint was trained on"):
+        train(TrainSettings(data=str(other), out=str(out), steps=2, batch=1, resume=True, **TINY))
+    wrong = tmp_path / "wrong-features"
+    make_dataset(wrong, 1, resolution=8, feature_dim=8, anchors=6, feature_model="another-extractor")
+    with pytest.raises(UserError, match="another-extractor"):
+        train(TrainSettings(data=str(wrong), out=str(out), steps=2, batch=1, resume=True, allow_new_data=True, **TINY))
+
+
+# ---------------------------------------------------------------------------- data parallel
+def test_two_gloo_processes_give_the_single_process_gradient(data, tmp_path):
+    args = ["--data", str(data), "--steps", "1", "--batch", "4", "--preset", "tiny", "--device", "cpu",
+            "--precision", "fp32", "--warmup", "1", "--log-every", "1"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+           "-m", "unipixie.training.train", "--out", str(tmp_path / "ddp"), "--dump-gradients",
+           str(tmp_path / "g2.safetensors"), "--stats-out", str(tmp_path / "ddp.json"), *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ddp = json.loads((tmp_path / "ddp.json").read_text())
+    assert ddp["world_size"] == 2
+    single = train(TrainSettings(data=str(data), out=str(tmp_path / "one"), steps=1, batch=4,
+                                 dump_gradients=str(tmp_path / "g1.safetensors"), **TINY))
+    g1, g2 = load_file(str(tmp_path / "g1.safetensors")), load_file(str(tmp_path / "g2.safetensors"))
+    assert g1.keys() == g2.keys()
+    worst = max(float((g1[k] - g2[k]).abs().max() / (g1[k].abs().max() + 1e-8)) for k in g1)
+    assert worst < 1e-4, worst
+    assert sum(float(g.abs().sum()) for g in g1.values()) > 0
+    assert ddp["losses"][0] == pytest.approx(single["losses"][0], rel=1e-5)
+
+
+# ---------------------------------------------------------------------------- command line
+def test_train_command_then_predict(data, tmp_path):
+    out = tmp_path / "ck"
+    assert main(["train", "--data", str(data), "--out", str(out), "--steps", "2", "--batch", "2", "--preset", "tiny",
+                 "--device", "cpu", "--set", "latent_tokens=4", "--save-dtype", "bfloat16"]) == 0
+    cfg = json.loads((out / "config.json").read_text())["config"]
+    assert cfg["latent_tokens"] == 4 and cfg["feature_model"] == "synthetic-test" and cfg["spring_anchors"] == 6
+    assert main(["train", "--data", str(data), "--out", str(out), "--steps", "2", "--preset", "tiny"]) == 2
+    grid = TrainingSample.load(list_samples(data)[0]).grid.save(tmp_path / "grid.npz")
+    assert main(["predict", str(grid), "--checkpoint", str(out), "--alpha", "0.3", "--steps", "2", "--device", "cpu",
+                 "--heads", "mpm,spring", "--out", str(tmp_path / "pred")]) == 0
+    assert (tmp_path / "pred" / "material_field_a0.300.npz").is_file()
+    assert not (tmp_path / "pred" / "lbs_a0.300.npz").exists()
+
+
+def test_train_script_runs_from_a_bare_checkout(repo_root):
+    """`python training/train.py` (torchrun's file form) works without the package installed."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([sys.executable, "-S", "-c",
+                           "import runpy, sys; sys.argv = ['train.py', '--help']; "
+                           f"runpy.run_path({str(repo_root / 'training' / 'train.py')!r}, run_name='__main__')"],
+                          capture_output=True, text=True, env=env, cwd="/", timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "--data" in proc.stdout and "--resume" in proc.stdout
