@@ -385,7 +385,9 @@ def register_material_predictor(predictor: MaterialPredictor) -> MaterialPredict
 
     The predictor receives the object as arrays, α in [0, 1] and the solver name, and returns a
     :class:`ResolvedMaterial` (a world-space material spec plus solver settings such as LBS
-    skinning parameters).  The latest registration wins.  Usable as a decorator.
+    skinning parameters).  The latest registration wins.  Usable as a decorator.  In Blender the
+    predictor runs in the bake's worker thread: it must not touch ``bpy`` (read what it needs from
+    Blender before the bake, e.g. into a cache keyed by the object's name).
     """
     if not callable(predictor):
         raise TypeError("a material predictor must be callable")

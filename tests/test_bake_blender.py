@@ -530,3 +530,15 @@ def test_bake_through_the_installed_extension_module(blender, tmp_path):
     assert "2 of 4 job(s)" in res.stdout and "o_CubeA_1.blend" in listed and "o_CubeB_1.blend" in listed
     res = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
     assert res.returncode == 2 and "needs the UniPixie model" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_bench_bake_runs_and_times_simulation_and_writing(blender, tmp_path):
+    from unipixie.core import cli
+
+    out = tmp_path / "bake.json"
+    assert cli.main(["bench", "bake", "--frames", "3", "--subdivisions", "1", "--solvers", "spring_mass",
+                     "--out", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    metrics = {r["metric"]: r for r in results}
+    assert {"simulate_s", "write_mesh_cache_s", "write_shape_keys_s", "write_fraction_of_bake"} <= set(metrics)
+    assert metrics["simulate_s"]["value"] > 0 and 0 < metrics["write_fraction_of_bake"]["value"] < 1

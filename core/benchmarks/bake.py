@@ -12,7 +12,6 @@ armature.  Writing needs bpy: where bpy is missing (the GPU machine) only simula
 from __future__ import annotations
 
 import statistics
-import tempfile
 import time
 
 HELP = "bake time per solver for a 10k-vertex mesh × 250 frames: simulation vs keyframe writing"
@@ -43,43 +42,6 @@ def _subject(subdivisions: int):
     return BakeObject("Ball", verts, mesh.faces)
 
 
-def _time_writes(bo, result, options, modes) -> dict:
-    """Median write time (s) per output mode over 3 runs in a fresh Blender scene."""
-    import bpy
-
-    from .. import bake as core_bake
-    from ..blender_io import bake as bio
-
-    out = {}
-    with tempfile.TemporaryDirectory(prefix="unipixie-bench-bake-") as tmp:
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-        me = bpy.data.meshes.new("Ball")
-        me.from_pydata(bo.rest_local.tolist(), [], bo.triangles.tolist())
-        me.update()
-        obj = bpy.data.objects.new("Ball", me)
-        bpy.context.scene.collection.objects.link(obj)
-        for mode in modes:
-            times = []
-            for _ in range(3):
-                opts = core_bake.BakeOptions(**{**options.__dict__, "output": mode, "cache_dir": tmp})
-                t0 = time.perf_counter()
-                gen = bio.write_result(obj, bo, result, opts)
-                while True:
-                    try:
-                        next(gen)
-                    except StopIteration as stop:
-                        rep = stop.value
-                        break
-                times.append(time.perf_counter() - t0)
-                if rep.mode != mode:
-                    times = []
-                    break
-                bio.clear_bake(obj)
-            if times:
-                out[mode] = (statistics.median(times), len(times))
-    return out
-
-
 def run(args) -> list[dict]:
     from .. import bake as core_bake
     from ...solvers.api import canonical_solver
@@ -93,11 +55,9 @@ def run(args) -> list[dict]:
     sim_device = device_description(device)
     cpu_device = device_description("cpu")
     try:
-        import bpy  # noqa: F401
-
-        have_bpy = True
+        from ..blender_io.bake import time_writes
     except ImportError:
-        have_bpy = False
+        time_writes = None
         print("bpy is not available here: only simulation is timed (writing needs Blender)")
     scenario = Scenario(ground_height=0.0)
     results: list[dict] = []
@@ -112,17 +72,17 @@ def run(args) -> list[dict]:
             result = core_bake.simulate(bo, scenario, options)
             sims.append(time.perf_counter() - t0)
         sim_s = statistics.median(sims)
-        case = f"{n} vertices x {T} frames, {solver}"
+        case = f"{n} vertices x {T} frames, {solver}" + (f", cells_across {args.mpm_cells}" if settings else "")
         meta = result.trajectory.meta
         detail = {k: meta[k] for k in ("particles", "substeps_total", "anchors", "substeps", "steps", "cubature_points")
                   if k in meta and not isinstance(meta[k], list)}
         results.append({"case": case, "device": sim_device, "metric": "simulate_s", "value": sim_s, "runs": len(sims),
                         "detail": detail})
-        if not have_bpy:
+        if time_writes is None:
             continue
         modes = ["mesh_cache", "shape_keys"] + (["armature"] if solver == "lbs" else [])
         auto_mode = core_bake.choose_output(solver, "auto", n, T)[0]
-        writes = _time_writes(bo, result, options, modes)
+        writes = time_writes(bo, result, options, modes)
         for mode, (sec, runs) in writes.items():
             entry = {"case": case, "device": cpu_device, "metric": f"write_{mode}_s", "value": sec, "runs": runs,
                      "vs": {"what": "simulation time of the same case (write / simulate)", "ratio": sec / sim_s}}

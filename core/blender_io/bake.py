@@ -331,7 +331,6 @@ class WriteRecord:
     armatures: list = field(default_factory=list)
     files: list = field(default_factory=list)
     folders: list = field(default_factory=list)
-    animation_data_created: bool = False
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -825,6 +824,9 @@ def bake_steps(obj, options: Optional[BakeOptions] = None, scenario=None, scene=
     bo = read_object(obj, scene)
     options = options or options_from_settings(obj, scene)
     scenario = scenario if scenario is not None else scenario_from_scene(obj, scene)
+    own_keys = obj.data.shape_keys is not None and bake_record(obj) is None
+    core_bake.choose_output(options.solver, options.output, bo.vertex_count, options.frames.count,
+                            has_other_shape_keys=own_keys, mesh_shared=obj.data.users > 1)  # refuse before simulating
     yield 0.0, "starting"
     run = core_bake.BackgroundRun(lambda progress: core_bake.simulate(bo, scenario, options, progress),
                                   description=f"{options.solver} bake").start()
@@ -837,13 +839,16 @@ def bake_steps(obj, options: Optional[BakeOptions] = None, scenario=None, scene=
     result = run.result()
     yield 0.85, "writing"
     gen = write_result(obj, bo, result, options)
-    while True:
-        try:
-            frac, status = next(gen)
-        except StopIteration as stop:
-            report = stop.value
-            break
-        yield 0.85 + 0.15 * frac, status
+    try:
+        while True:
+            try:
+                frac, status = next(gen)
+            except StopIteration as stop:
+                report = stop.value
+                break
+            yield 0.85 + 0.15 * frac, status
+    finally:
+        gen.close()  # on Esc: the writer removes what it wrote
     s = object_settings(obj)
     if s is not None:
         s.status = f"baked: {report.mode.replace('_', ' ')}, frames {report.frames[0]}-{report.frames[1]}"
@@ -975,3 +980,44 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
             bpy.ops.wm.save_as_mainfile(filepath=str(out.resolve()), relative_remap=True)
             log(f"saved {out}")
     return reports
+
+
+def time_writes(bo: BakeObject, result: SimulationResult, options: BakeOptions, modes: Sequence[str],
+                repeats: int = 3) -> dict:
+    """Median wall time (s) of writing ``result`` as each output mode, in a fresh empty scene (benchmark).
+
+    Returns ``{mode: (seconds, runs)}``; a mode the writer had to replace (an LBS motion that bones
+    cannot represent) is left out.  Everything written is cleared again.
+    """
+    import statistics
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="unipixie-bench-bake-") as tmp:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        me = bpy.data.meshes.new(bo.name)
+        me.from_pydata(bo.rest_local.tolist(), [], bo.triangles.tolist())
+        me.update()
+        obj = bpy.data.objects.new(bo.name, me)
+        bpy.context.scene.collection.objects.link(obj)
+        for mode in modes:
+            times = []
+            for _ in range(repeats):
+                opts = BakeOptions(**{**options.__dict__, "output": mode, "cache_dir": tmp})
+                t0 = time.perf_counter()
+                gen = write_result(obj, bo, result, opts)
+                while True:
+                    try:
+                        next(gen)
+                    except StopIteration as stop:
+                        rep = stop.value
+                        break
+                times.append(time.perf_counter() - t0)
+                clear_bake(obj)
+                if rep.mode != mode:
+                    times = []
+                    break
+            if times:
+                out[mode] = (statistics.median(times), len(times))
+        empty_trash()
+    return out
