@@ -164,6 +164,11 @@ def _class_law_table(wp, kernels, device):
     return wp.array(laws, dtype=kernels.ClassLaw, device=device)
 
 
+def _per_class(attribute) -> np.ndarray:
+    """(NUM_CLASSES,) array of ``attribute(material_class)`` indexed by class id (index it with class ids)."""
+    return np.array([attribute(c) for c in materials.MATERIAL_CLASSES])
+
+
 def _skew(w: np.ndarray) -> np.ndarray:
     """(3,) angular velocity -> (3, 3) matrix with skew(w) @ r = w x r."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
@@ -269,8 +274,9 @@ class MPMSimulation(Simulation):
             raise UserError("material Poisson's ratio must lie in (-1, 0.5) at every particle")
         bad_ids = np.setdiff1d(np.unique(sampled.material), list(materials.BY_ID))
         if bad_ids.size:
-            raise UserError(f"unknown material class id(s) {bad_ids.tolist()}; valid ids are 0..{materials.NUM_CLASSES - 1}")
-        simulated = np.array([materials.BY_ID[int(c)].simulated for c in range(materials.NUM_CLASSES)])[sampled.material]
+            raise UserError(f"unknown material class id(s) {bad_ids.tolist()}; valid ids are "
+                            f"0..{materials.NUM_CLASSES - 1}")
+        simulated = _per_class(lambda c: c.simulated)[sampled.material]
         if not simulated.any():
             raise UserError("no simulated material: every particle is 'background'")
         points, volumes = points[simulated], volumes[simulated]
@@ -282,16 +288,17 @@ class MPMSimulation(Simulation):
             if below:
                 raise UserError(f"{below} of {len(points)} particles start below the ground plane z = "
                                 f"{sc.ground_height:g} m; move the object up or set the scenario's ground lower/null")
-        held_class = np.array([materials.BY_ID[c].held_fixed for c in range(materials.NUM_CLASSES)])
-        held = sc.pinned_mask(points) | held_class[sampled.material]
+        rigid = _per_class(lambda c: c.held_fixed)[sampled.material]  # stationary: never deforms
+        held = sc.pinned_mask(points) | rigid  # clamped material is held but may deform
         masses = sampled.density * volumes
-        com = (points * masses[:, None]).sum(0) / masses.sum()
-        v0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], points - com)
+        v0 = sc.initial_velocities(points, masses)
         v0[held] = 0.0
+        com = (points * masses[:, None]).sum(0) / masses.sum()
         from scipy.spatial import cKDTree
 
         _, nearest = cKDTree(points).query(self.tracked_rest)
         tracked_held = sc.pinned_mask(self.tracked_rest) | held[nearest]
+        # rigid initial motion at the tracked points, about the particles' centre of mass
         tv0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], self.tracked_rest - com)
         tv0[tracked_held] = 0.0
 
@@ -307,7 +314,6 @@ class MPMSimulation(Simulation):
         C0 = _skew(sc.initial_angular_velocity)
         self._C0 = np.where(held[:, None, None], 0.0, C0[None]).astype(np.float32)
         F0 = np.eye(3) if s.initial_deformation is None else s.initial_deformation
-        rigid = held_class[sampled.material]  # stationary material never deforms; clamped material may
         self._F0 = np.where(rigid[:, None, None], np.eye(3)[None], F0[None]).astype(np.float32)
         U, _, Vt = np.linalg.svd(F0)
         R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
@@ -315,10 +321,9 @@ class MPMSimulation(Simulation):
 
         self._rot0 = Rotation.from_matrix(R0).as_quat().astype(np.float32)  # (x, y, z, w) as Warp stores quats
         plastic0 = np.zeros(len(points))
-        snow = np.array([c.plasticity == "snow" for c in materials.MATERIAL_CLASSES])[sampled.material]
+        snow = _per_class(lambda c: c.plasticity == "snow")[sampled.material]
         plastic0[snow] = 1.0  # snow: plastic volume ratio Jp starts at 1
         self._plastic0 = plastic0
-        self._code = (sampled.material + np.where(held, 16, 0)).astype(np.int32)
         self._anchor = np.array([0.0, 0.0, sc.ground_height if sc.ground_height is not None else 0.0])
 
         if progress:
@@ -329,6 +334,7 @@ class MPMSimulation(Simulation):
         wp = init_warp()
         self._wp = wp
         self._k = mpm_kernels
+        self._code = (sampled.material + np.where(held, int(mpm_kernels.HELD_FLAG), 0)).astype(np.int32)
         wp.load_module(mpm_kernels, device=self.device)
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
 
@@ -563,7 +569,7 @@ class MPMSimulation(Simulation):
         P, st = buf.particles, buf.stats
         wp.launch(k.frame_stats, dim=E * buf.lanes, device=self.device,
                   inputs=[P["x"], P["v"], P["mass"], P["vol"], P["mu"], P["lam"], P["plastic"], P["code"], self._laws,
-                          buf.tracked["x"], N, max(M, 1) if M else 0, buf.lanes],
+                          buf.tracked["x"], N, M, buf.lanes],
                   outputs=[st["lo"], st["hi"], st["stats"]])
         lo = st["lo"].numpy().reshape(E, buf.lanes, 3).min(1).astype(np.float64)
         hi = st["hi"].numpy().reshape(E, buf.lanes, 3).max(1).astype(np.float64)
@@ -625,7 +631,8 @@ class MPMSimulation(Simulation):
         n = E * N
         p2g = wp.launch(self._p2g_kernel, dim=n, device=dev, record_cmd=True,
                         inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"], P["vol"], P["mu"],
-                                P["lam"], P["code"], self._laws, Env["dt"], Env["steps"], Env["yield"], Env["eta"], Env["origin"],
+                                P["lam"], P["code"], self._laws, Env["dt"], Env["steps"], Env["yield"], Env["eta"],
+                                Env["origin"],
                                 N, nodes, dims, dx, inv_dx, 0],
                         outputs=[G["mv"], G["held"], buf.lost])
         grid = wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True,
@@ -633,7 +640,8 @@ class MPMSimulation(Simulation):
                                  Env["origin"], nodes, dims, dx, has_ground, ground_z, 0],
                          outputs=[G["v"]])
         g2p = wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True,
-                        inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"], Env["dt"],
+                        inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
+                                Env["dt"],
                                 Env["steps"], Env["origin"], N, n, M_alloc, nodes, dims, dx, inv_dx, has_ground,
                                 ground_z, 0])
         for step in range(first, stop):

@@ -4,16 +4,18 @@ Layout (all float32, structure of arrays):
 
 * particles: ``E`` environments × ``N`` particles, environment-major (particle ``p`` belongs to
   environment ``p // N``); positions ``x`` (m), velocities ``v`` (m/s), APIC affine velocity
-  ``C`` (1/s, the velocity gradient estimate), elastic deformation gradient ``F``, one plastic
-  state scalar, mass (kg), rest volume (m³), Lamé ``mu``/``lam`` (Pa) and a ``code``
-  (material-class id + 16 × held flag).
+  ``C`` (1/s, the velocity gradient estimate), elastic deformation gradient ``F``, the rotation
+  of F's polar decomposition as a quaternion ``rot`` (warm start of the elastic fast path), one
+  plastic state scalar, mass (kg), rest volume (m³), Lamé ``mu``/``lam`` (Pa) and a ``code``
+  (material-class id + ``HELD_FLAG`` × held).
 * grid: every environment owns a block of ``nx·ny·nz`` nodes (x-major, z fastest) whose world
   origin moves with the material (``env_origin``); nodes lie on one global lattice of pitch
   ``dx``, so moving the block changes nothing physical.
 * tracked points: ``E`` × ``M`` massless points advected by the grid velocity.
 
-One substep is three launches: :func:`p2g` (deformation update, return mapping, stress and the
-scatter of mass and momentum, fused), :func:`grid_update` (forces, drag, boundary conditions;
+One substep is three launches: P2G (deformation update, return mapping, stress and the scatter
+of mass and momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the
+elastic fixed-corotated law only), :func:`grid_update` (forces, drag, boundary conditions;
 clears the accumulators for the next substep) and :func:`g2p` (gather, advection; also moves
 the tracked points).  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
@@ -406,7 +408,8 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
 
 @wp.kernel
 def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3),
+        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
+        tv: wp.array(dtype=wp.vec3),
         t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
         env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
         n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
@@ -613,7 +616,8 @@ def gather_particles(order: wp.array(dtype=wp.int32),
                      vol: wp.array(dtype=float), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
                      code: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32),
                      x2: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), C2: wp.array(dtype=wp.mat33),
-                     F2: wp.array(dtype=wp.mat33), rot2: wp.array(dtype=wp.quat), plastic2: wp.array(dtype=float), mass2: wp.array(dtype=float),
+                     F2: wp.array(dtype=wp.mat33), rot2: wp.array(dtype=wp.quat), plastic2: wp.array(dtype=float),
+                     mass2: wp.array(dtype=float),
                      vol2: wp.array(dtype=float), mu2: wp.array(dtype=float), lam2: wp.array(dtype=float),
                      code2: wp.array(dtype=wp.int32), pid2: wp.array(dtype=wp.int32)):
     """Reorder every particle field by ``order`` (cell-sorted) into the second buffer."""

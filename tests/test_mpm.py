@@ -100,7 +100,8 @@ def test_voxel_field_with_background_and_stationary_parts():
     cls = np.full(len(idx), materials.get("jelly").id)
     cls[idx[:, 2] == 0] = materials.get("stationary").id
     cls[(idx[:, 2] == 3) & (idx[:, 0] == 0)] = materials.get("background").id
-    field = MaterialField(geo, occupancy, np.full(len(idx), 1e5), np.full(len(idx), 0.3), np.full(len(idx), 1000.0), cls)
+    K = len(idx)
+    field = MaterialField(geo, occupancy, np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
     body = Body(points=lattice((8, 8, 8), 0.0125), point_volume=0.0125 ** 3)
     frames = np.linspace(0.0, 0.2, 5)
     sim = mpm.prepare(body, field, Scenario(gravity=[0, 0, -G], ground_height=None), frames)

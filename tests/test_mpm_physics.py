@@ -149,12 +149,14 @@ def test_stiffness_region_scales_wave_speed():
 # --------------------------------------------------------------------------- 7. material damping
 def test_material_damping_spares_rigid_motion_and_damps_oscillation():
     """Kelvin–Voigt damping: a translating + spinning block keeps its velocity (0.5 %); the bar's
-    oscillation amplitude decays as exp(−ω² η t / E) (1-D Kelvin–Voigt with viscosity 2η, ν = 0) within 25 %."""
+    oscillation amplitude decays as exp(−ω² η t / E) (1-D Kelvin–Voigt with viscosity 2η, ν = 0),
+    within 25 % in the exponent."""
     eta = 20.0
     frames = np.linspace(0.0, 0.2, 11)
     spin = scenario(initial_velocity=[0.5, 0.0, 0.0], initial_angular_velocity=[0.0, 0.0, 3.0])
     sim = prepare(block((4, 4, 4), 0.01), frames, sc=spin)
-    free, damped = sim.run([], particle_states=True), sim.run([fx.make("material_damping", eta=eta)], particle_states=True)
+    free = sim.run([], particle_states=True)
+    damped = sim.run([fx.make("material_damping", eta=eta)], particle_states=True)
     v_free = free.particle_attributes["velocity"].astype(np.float64)
     v_damped = damped.particle_attributes["velocity"].astype(np.float64)
     scale = np.abs(v_free).max()
