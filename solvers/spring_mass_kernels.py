@@ -30,7 +30,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
 
     x, v: (E, N) m, m/s at the start of the substep; x_out, v_out: (E, N) at its end.
     rest: (E, H) current rest lengths m (plasticity updates them); kappa: (E, H) N/m;
-    dashpot: (E, H) N·s/m; yield_strain: (E, H) (>= BIG: elastic).
+    dashpot: (E, H) N·s/m, implicit in v_i (see below); yield_strain: (E, H) (>= BIG: elastic).
     inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
     accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
     friction: (E,) Coulomb μ at the ground plane z = ground (when has_ground != 0).
@@ -44,6 +44,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     xi = x[e, i]
     vi = v[e, i]
     f = wp.vec3(0.0, 0.0, 0.0)
+    Cd = wp.mat33(0.0)  # Σ c n nᵀ of the dashpots: their pull on v_i is taken implicitly
     for h in range(start[i], start[i + 1]):
         j = nbr[h]
         d = x[e, j] - xi
@@ -60,8 +61,12 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                 elif s < -ey:
                     L = l / (1.0 - ey)
                     rest[e, h] = L
-            f = f + (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
-    vn = vi + dt * (accel[e] + im * f)
+            c = dashpot[e, h]
+            f = f + (kappa[e, h] * (l - L) + c * wp.dot(v[e, j], n)) * n
+            Cd = Cd + c * wp.outer(n, n)
+    # (I + dt/m Σ c n nᵀ) v_new = v + dt (a + f/m): dashpots implicit in the anchor's own velocity,
+    # explicit in its neighbours' (one Jacobi sweep): stable for any viscosity, rigid motion exact
+    vn = wp.inverse(wp.identity(n=3, dtype=float) + (dt * im) * Cd) * (vi + dt * (accel[e] + im * f))
     # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
     vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
     xn = xi + dt * vn
