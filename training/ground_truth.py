@@ -67,7 +67,7 @@ class GroundTruthSettings:
         module docstring.
     tracked_points: at most this many mesh vertices are tracked (0 = all).
     spring_anchors: N_a of the spring-mass network (the model's spring head must be configured alike).
-    lbs_cubature_points / lbs_mass_samples: LBS solver sample counts.
+    lbs_cubature_points / lbs_mass_samples: LBS solver sample counts; lbs_max_dt: its largest (implicit) step, s.
     fit_step / fit_bound / fit_evaluations: the scale fit searches log10 s in [-fit_bound, fit_bound],
         first at 0 and ±fit_step, with at most ``fit_evaluations`` simulations per end.
     extra_alphas: further α values simulated with MPM (the evaluation compares solvers at α = 0.5).
@@ -84,6 +84,7 @@ class GroundTruthSettings:
     spring_anchors: int = 256
     lbs_cubature_points: int = 200
     lbs_mass_samples: int = 2000
+    lbs_max_dt: float = 1.0 / 120.0
     fit_step: float = 0.4
     fit_bound: float = 1.6
     fit_evaluations: int = 5
@@ -98,7 +99,7 @@ class GroundTruthSettings:
             if int(v) != v or int(v) < 1:
                 raise UserError(f"ground-truth setting '{name}' must be a positive whole number, got {v!r}")
             setattr(self, name, int(v))
-        for name in ("fps", "wave_speed_per_size", "fit_step", "fit_bound"):
+        for name in ("fps", "wave_speed_per_size", "fit_step", "fit_bound", "lbs_max_dt"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v > 0):
                 raise UserError(f"ground-truth setting '{name}' must be a positive number, got {getattr(self, name)!r}")
@@ -191,6 +192,22 @@ class Solid:
     def simulated_part_E(self, alpha: float) -> np.ndarray:
         """(parts,) Pa: the annotated E at ``alpha`` limited by :meth:`part_E_cap`."""
         return np.minimum(self.labels(alpha)["E"], self.part_E_cap())
+
+    def capped_material(self, E, nu, rho, cls):
+        """Per-particle values (P,) -> (PointMaterial with E capped so that each particle's wave speed is at most
+        the cap, info dict) — the rule applied to predicted materials, whose density and ν vary per particle."""
+        from ..solvers.material_sampling import PointMaterial
+
+        E, nu, rho = (np.asarray(a, np.float64) for a in (E, nu, rho))
+        cls = np.asarray(cls, np.int32)
+        held_cls = np.array([c.held_fixed for c in materials.MATERIAL_CLASSES])
+        free = ~(self.scenario.pinned_mask(self.points) | held_cls[cls])
+        cap = rho * self.wave_speed_cap ** 2 / p_wave_factor(nu, cls)
+        capped = free & (E > cap)
+        mass = rho * self.point_volume
+        info = {"capped_mass_fraction": float(mass[capped].sum() / max(mass[free].sum(), 1e-30)) if free.any() else 0.0,
+                "wave_speed_cap": self.wave_speed_cap}
+        return PointMaterial(self.points, np.where(capped, cap, E), nu, rho, cls), info
 
     def material(self, alpha: float):
         """(PointMaterial with E capped at the wave-speed cap, info dict) at ``alpha``."""
@@ -352,24 +369,39 @@ def _scale_effect(solid: Solid, log_scale: float):
     return [effects.make("stiffness_region", factor=factor, region=_whole_body_box(solid))]
 
 
+def _evaluator(sim, solid: Solid, target: Trajectory, keep: dict):
+    def evaluate(log_scale: float) -> float:
+        traj = sim.run(_scale_effect(solid, log_scale))
+        keep[round(float(log_scale), 6)] = traj.positions
+        return motion_rmse(traj, target)
+
+    return evaluate
+
+
 def fit_spring(solid: Solid, alpha: float, target: Trajectory, settings: GroundTruthSettings,
-               progress: Optional[Progress] = None) -> dict:
-    """Spring-mass stiffness (N_a,) N and softness η at ``alpha`` fitted to the ``target`` MPM motion."""
+               progress: Optional[Progress] = None, keep_best: bool = False) -> dict:
+    """Spring-mass stiffness (N_a,) N and softness η at ``alpha`` fitted to the ``target`` MPM motion
+    (``keep_best``: also return the best fit's tracked motion as ``best_positions``)."""
     from ..solvers import spring_mass
 
     mat, _ = solid.material(alpha)
     t = time.perf_counter()
     sim = spring_mass.prepare(solid.body(), mat, solid.scenario, solid.frame_times, device=settings.device,
-                              settings={"anchors": settings.spring_anchors})
-    fit = fit_scale(lambda x: motion_rmse(sim.run(_scale_effect(solid, x)), target), settings.fit_step,
-                    settings.fit_bound, settings.fit_evaluations, progress)
-    return {"stiffness": (sim.stiffness * fit.scale).astype(np.float64), "softness": float(sim.softness),
-            "anchors": sim.network.anchors.copy(), "fit": fit, "seconds": time.perf_counter() - t,
-            "anchor_count": int(sim.network.count)}
+                              settings=spring_solver_settings(settings))
+    keep: dict = {}
+    fit = fit_scale(_evaluator(sim, solid, target, keep), settings.fit_step, settings.fit_bound,
+                    settings.fit_evaluations, progress)
+    out = {"stiffness": (sim.stiffness * fit.scale).astype(np.float64), "softness": float(sim.softness),
+           "anchors": sim.network.anchors.copy(), "fit": fit, "seconds": time.perf_counter() - t,
+           "anchor_count": int(sim.network.count)}
+    if keep_best:
+        out["best_positions"] = keep[round(fit.log_scale, 6)]
+    return out
 
 
 def fit_lbs(solid: Solid, alpha: float, target: Trajectory, settings: GroundTruthSettings,
-            skinning_params: Optional[np.ndarray] = None, progress: Optional[Progress] = None) -> dict:
+            skinning_params: Optional[np.ndarray] = None, progress: Optional[Progress] = None,
+            keep_best: bool = False) -> dict:
     """LBS skinning parameters (650,) and the E scale at ``alpha`` fitted to the ``target`` MPM motion.
 
     ``skinning_params`` None fits them data-free on this end's material (the soft end); otherwise they are
@@ -379,16 +411,31 @@ def fit_lbs(solid: Solid, alpha: float, target: Trajectory, settings: GroundTrut
 
     mat, _ = solid.material(alpha)
     t = time.perf_counter()
-    lbs_settings = {"cubature_points": settings.lbs_cubature_points, "mass_samples": settings.lbs_mass_samples}
+    lbs_settings = lbs_solver_settings(settings)
     if skinning_params is not None:
         lbs_settings["skinning_params"] = np.asarray(skinning_params, np.float64)
     sim = lbs.prepare(solid.body(), mat, solid.scenario, solid.frame_times, device=settings.device,
                       settings=lbs_settings)
-    fit = fit_scale(lambda x: motion_rmse(sim.run(_scale_effect(solid, x)), target), settings.fit_step,
-                    settings.fit_bound, settings.fit_evaluations, progress)
-    return {"skinning_params": np.asarray(sim.skinning_params, np.float32), "E_scale": fit.scale, "fit": fit,
-            "cubature": sim.cubature_rest.copy(), "cubature_E": sim.cubature_E * fit.scale,
-            "cubature_nu": sim.cubature_nu.copy(), "seconds": time.perf_counter() - t}
+    keep: dict = {}
+    fit = fit_scale(_evaluator(sim, solid, target, keep), settings.fit_step, settings.fit_bound,
+                    settings.fit_evaluations, progress)
+    out = {"skinning_params": np.asarray(sim.skinning_params, np.float32), "E_scale": fit.scale, "fit": fit,
+           "cubature": sim.cubature_rest.copy(), "cubature_E": sim.cubature_E * fit.scale,
+           "cubature_nu": sim.cubature_nu.copy(), "seconds": time.perf_counter() - t}
+    if keep_best:
+        out["best_positions"] = keep[round(fit.log_scale, 6)]
+    return out
+
+
+def lbs_solver_settings(settings: GroundTruthSettings) -> dict:
+    """The LBS solver settings of the ground-truth protocol (also used to simulate predictions)."""
+    return {"cubature_points": settings.lbs_cubature_points, "mass_samples": settings.lbs_mass_samples,
+            "max_dt": settings.lbs_max_dt}
+
+
+def spring_solver_settings(settings: GroundTruthSettings) -> dict:
+    """The spring-mass solver settings of the ground-truth protocol."""
+    return {"anchors": settings.spring_anchors}
 
 
 def ordered_scales(s0: float, s1: float, base0: np.ndarray, base1: np.ndarray) -> tuple[float, float, bool]:

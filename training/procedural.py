@@ -84,6 +84,8 @@ class Part:
     name: str
     components: list
     appearance: Appearance
+    rest: list | None = None
+    """The components' rest shapes when ``components`` are deformed (textures stay attached to the rest shape)."""
 
     def mesh(self):
         """All components concatenated (closed, possibly self-overlapping between components)."""
@@ -128,9 +130,14 @@ class ProceduralObject:
         return np.stack([verts.min(0), verts.max(0)])
 
     # ---------------------------------------------------------------- export
-    def export_glb(self, path) -> Path:
+    def export_glb(self, path, frame_box=None) -> Path:
         """Write the object as binary glTF (y-up as the format says; z-up again once imported into Blender):
-        one mesh node named after each part, with one textured PBR material."""
+        one mesh node named after each part, with one textured PBR material.
+
+        frame_box: optional (2, 3) metres; two tiny tetrahedra (edge 1/2000 of the box diagonal) are added at its
+        corners so that renders of differently deformed copies share one normalisation (the renderer fits
+        the subject's bounding box into its cameras).
+        """
         import trimesh
 
         scene = trimesh.Scene()
@@ -138,10 +145,41 @@ class ProceduralObject:
             mesh = _textured_mesh(part, self.seed * 1000003 + self.index)
             mesh.apply_transform(Z_UP_TO_GLTF)
             scene.add_geometry(mesh, node_name=part.name, geom_name=part.name)
+        if frame_box is not None:
+            box = np.asarray(frame_box, dtype=np.float64).reshape(2, 3)
+            edge = 5e-4 * float(np.linalg.norm(box[1] - box[0]))
+            for k, corner in enumerate(box):
+                tet = trimesh.creation.icosphere(subdivisions=0, radius=edge)
+                tet.apply_translation(corner)
+                tet.apply_transform(Z_UP_TO_GLTF)
+                scene.add_geometry(tet, node_name=f"frame_marker_{k}", geom_name=f"frame_marker_{k}")
         data = trimesh.exchange.gltf.export_glb(scene, include_normals=True)
         path = Path(path)
         path.write_bytes(data)
         return path
+
+    def vertices(self) -> np.ndarray:
+        """(V, 3) float64 metres: every component's vertices, parts and components in order."""
+        return np.concatenate([np.asarray(c.vertices, np.float64) for p in self.parts for c in p.components])
+
+    def with_vertices(self, vertices: np.ndarray) -> "ProceduralObject":
+        """A copy whose components have the given (V, 3) vertex positions (order of :meth:`vertices`), e.g. a
+        simulated frame; faces, parts and appearance are unchanged."""
+        import trimesh
+
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.shape != (sum(len(c.vertices) for p in self.parts for c in p.components), 3):
+            raise UserError(f"{self.object_id}: {v.shape} vertex positions do not match the object's vertices")
+        parts, at = [], 0
+        for p in self.parts:
+            comps = []
+            for c in p.components:
+                n = len(c.vertices)
+                comps.append(trimesh.Trimesh(v[at:at + n], np.asarray(c.faces), process=False))
+                at += n
+            parts.append(Part(p.name, comps, p.appearance, p.rest or p.components))
+        return ProceduralObject(self.object_id, self.index, self.seed, self.semantic_class, self.variant, parts,
+                                self.annotation, self.scenario, dict(self.meta))
 
     # ---------------------------------------------------------------- voxels and samples
     def voxel_labels(self, geometry: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -762,10 +800,12 @@ def texture_image(app: Appearance, rng, size: int = TEXTURE_SIZE) -> np.ndarray:
 def _uv(part: Part):
     """Unmerged per-face vertices (F*3, 3), smooth normals (F*3, 3) and UVs (F*3, 2) of a part's components."""
     verts, norms, uvs = [], [], []
-    for comp in part.components:
-        V = np.asarray(comp.vertices, dtype=np.float64)
+    for comp, rest in zip(part.components, part.rest or part.components):
         F = np.asarray(comp.faces)
         N = np.asarray(comp.vertex_normals, dtype=np.float64)
+        verts.append(np.asarray(comp.vertices, dtype=np.float64)[F].reshape(-1, 3))
+        V = np.asarray(rest.vertices, dtype=np.float64)      # UVs from the rest shape
+        comp = rest
         P = V[F]                                   # (F, 3, 3)
         c = V.mean(0)
         lo, hi = V.min(0), V.max(0)
@@ -797,7 +837,6 @@ def _uv(part: Part):
                 fill = (u * ~pole).sum(1) / np.maximum((~pole).sum(1), 1)
                 u = np.where(pole, fill[:, None], u)
             uv = np.stack([u, v], axis=-1)
-        verts.append(P.reshape(-1, 3))
         norms.append(N[F].reshape(-1, 3))
         uvs.append(uv.reshape(-1, 2))
     return np.concatenate(verts), np.concatenate(norms), np.concatenate(uvs)

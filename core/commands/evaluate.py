@@ -1,0 +1,76 @@
+"""``unipixie evaluate CHECKPOINT --data DIR --split test --out DIR``: the paper's tables on a dataset split."""
+
+from __future__ import annotations
+
+NAME = "evaluate"
+HELP = "evaluate a model (and baselines) on a dataset split: property errors, solver fidelity, a figure"
+EXAMPLES = """  unipixie evaluate models/default --data data/pmv --split test --out eval/default
+  unipixie evaluate runs/main --data data/pmv --out eval/main --baseline runs/unet_det --baseline runs/unet_ddpm
+  unipixie evaluate runs/main --data data/pmv --out eval/quick --simulate-objects 0     # Table 1 only
+  unipixie evaluate none --data data/pmv --out eval/unet --baseline runs/unet_det        # baselines only"""
+
+
+def add_arguments(p):
+    from . import _common
+
+    p.add_argument("checkpoint", metavar="CHECKPOINT",
+                   help="UniPixie checkpoint directory (config.json + model.safetensors); 'none' for baselines only")
+    p.add_argument("--data", required=True, metavar="DIR", help="dataset directory (split.json + samples/ + objects/)")
+    p.add_argument("--split", default="test", help="split to evaluate (default test)")
+    p.add_argument("--out", required=True, metavar="DIR", help="report directory (report.json, report.md, figure, "
+                                                               "raw predictions)")
+    p.add_argument("--baseline", action="append", default=[], metavar="DIR",
+                   help="a baseline checkpoint (python training/baselines.py train ...); repeatable")
+    p.add_argument("--alphas", default="0,0.5,1", help="α values (default 0,0.5,1)")
+    p.add_argument("--device", type=_common.device, default="auto", help="torch device of the models (default auto)")
+    p.add_argument("--solver-device", type=_common.device, default="cpu",
+                   help="Warp device of the Table 2 simulations (default cpu)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed of the generative models (default 0)")
+    p.add_argument("--max-objects", type=int, default=0, help="evaluate only the first N objects (default all)")
+    p.add_argument("--simulate-objects", type=int, default=10,
+                   help="objects of the solver-fidelity table (default 10, as the paper; 0 = no simulations)")
+    p.add_argument("--no-fitters", action="store_true", help="skip the specialist test-time fitters in Table 2")
+    p.add_argument("--render-frames", type=int, default=3, help="rendered frames per α for PSNR/SSIM (0 = none)")
+    p.add_argument("--render-views", type=_common.positive_int, default=2, help="views per rendered frame (default 2)")
+    p.add_argument("--render-resolution", type=_common.positive_int, default=128, help="render size (default 128)")
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from ..errors import UserError
+    from ..progress import Progress
+
+    try:
+        alphas = tuple(float(a) for a in args.alphas.split(","))
+    except ValueError:
+        raise UserError(f"--alphas {args.alphas!r}: expected numbers separated by commas") from None
+    if any(not 0.0 <= a <= 1.0 for a in alphas):
+        raise UserError(f"--alphas {args.alphas!r}: values must lie in [0, 1]")
+    checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint
+    if checkpoint is not None and not Path(checkpoint).is_dir():
+        raise UserError(f"checkpoint {checkpoint}: directory not found")
+    if args.simulate_objects > 0 and args.render_frames > 0:
+        import torch._dynamo  # noqa: F401  (triton must be imported before Blender's first render)
+        try:
+            import bpy  # noqa: F401
+        except ImportError:
+            raise UserError("the PSNR/SSIM renders need Blender's 'bpy' module; install it or pass --render-frames 0") from None
+    from ...training.evaluate import EvalSettings, evaluate
+
+    settings = EvalSettings(alphas=alphas, split=args.split, device=args.device, solver_device=args.solver_device,
+                            seed=args.seed, max_objects=args.max_objects, simulate_objects=args.simulate_objects,
+                            fitters=not args.no_fitters, render_frames=args.render_frames,
+                            render_views=args.render_views, render_resolution=args.render_resolution)
+    from ...training.dataset import DatasetDir
+
+    n = len(DatasetDir(args.data).ids(args.split))
+    n = min(n, args.max_objects) if args.max_objects else n
+    with Progress(total=n, description="evaluate") as progress:
+        report = evaluate(checkpoint, args.data, args.out, baselines=args.baseline, settings=settings,
+                          progress=progress)
+    for name, m in report["methods"].items():
+        print(f"{name}: log E MSE {m['logE_mse']:.4f}, log rho MSE {m['logrho_mse']:.4f}, nu MSE {m['nu_mse']:.5f}, "
+              f"material {100 * m['material_acc']:.1f} %, {m['runtime_s']:.3f} s")
+    print(f"report: {args.out}/report.md and report.json")
+    return 0
