@@ -23,7 +23,6 @@ Blender data:
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import time
 from dataclasses import dataclass, field
