@@ -124,7 +124,9 @@ class FeatureExtractor:
 
     @property
     def is_clip(self) -> bool:
-        return not self.name.startswith("offline-")
+        """True only for a model with pretrained CLIP weights loaded from a file (not the offline or the
+        timing-only random-weight extractors)."""
+        return "weights" in self.identity
 
     @property
     def token_grid(self) -> int:

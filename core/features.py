@@ -240,21 +240,24 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
         except UserError:
             gpath.unlink(missing_ok=True)
 
+    # the model first: missing weights fail before any rendering, and torch / open_clip (with triton's LLVM)
+    # are loaded before Blender initialises OpenGL for Workbench (the other order crashes, see render.py)
+    yield 0.02, "loading the feature model"
+    if extractor is None:
+        t = time.perf_counter()
+        extractor = cf.make_extractor(offline=options.offline, clip_weights=options.clip_weights, device=options.device)
+        timings["load_model"] = time.perf_counter() - t
+
     t = time.perf_counter()
-    views, vpath = yield from rescaled(render_stage(objects, options, fingerprint), 0.02, 0.75)
+    views, vpath = yield from rescaled(render_stage(objects, options, fingerprint), 0.05, 0.75)
     timings["render"] = time.perf_counter() - t
 
-    yield 0.8, "occupancy"
+    yield 0.82, "occupancy"
     t = time.perf_counter()
     norm = Normalisation.from_matrix(views.normalisation)
     occ = occupancy_of(norm.to_normalised(verts), faces)
     timings["occupancy"] = time.perf_counter() - t
 
-    yield 0.85, "loading the feature model"
-    if extractor is None:
-        t = time.perf_counter()
-        extractor = cf.make_extractor(offline=options.offline, clip_weights=options.clip_weights, device=options.device)
-        timings["load_model"] = time.perf_counter() - t
     yield 0.9, f"features ({extractor.name}) and lifting"
     meta = {"normalisation": norm.to_dict(), "space": "normalised", "objects": views.meta.get("objects", []),
             "view_count": views.count, "resolution": int(views.images.shape[1]), "engine": settings.engine,

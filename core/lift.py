@@ -351,8 +351,9 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     crow[1:] = np.cumsum(4 * np.bincount(surf_i, minlength=S))
     with _warnings.catch_warnings():
         _warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
-        taps = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(cols.reshape(-1)),
-                                       torch.as_tensor(vals.reshape(-1), dtype=torch.float32),
+        taps = torch.sparse_csr_tensor(torch.as_tensor(crow, device=device),
+                                       torch.as_tensor(cols.reshape(-1), device=device),
+                                       torch.as_tensor(vals.reshape(-1), dtype=torch.float32, device=device),
                                        size=(S, V * gh * gw), device=device)
         surf_all = taps @ fmap.reshape(V * gh * gw, D)                         # (S, D); weights sum to 1
     surf_feats = surf_all[torch.as_tensor(painted, device=device)].to(torch.float16).cpu().numpy()

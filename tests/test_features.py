@@ -40,6 +40,10 @@ def test_offline_extractor_is_deterministic_named_and_not_clip():
     assert a.identity == cf.offline_identity()
     # features depend on the image
     assert (fa[0] - fa[1]).abs().mean() > 1e-3
+    # only models with loaded CLIP weights count as CLIP (not the timing-only random ViT-B-16)
+    timing = cf.FeatureExtractor("ViT-B-16-random-weights", None, 224, 16, 768, (0,) * 3, (1,) * 3,
+                                 identity={"model": "ViT-B-16", "random_seed": 0})
+    assert not timing.is_clip
 
 
 def test_missing_clip_weights_say_where_to_put_them(no_clip_env, tmp_path, monkeypatch):

@@ -241,3 +241,22 @@ def test_fingerprint_follows_geometry_and_materials(blender):
     img.pixels[0] = 0.5
     img.update()
     assert describe_subject([cube]).fingerprint != with_image
+
+
+def test_workbench_then_torch_in_a_fresh_process_does_not_crash(tmp_path):
+    """Regression: importing triton (via open_clip -> torchvision -> torch._dynamo) after a Workbench render
+    segfaulted the process (Mesa's llvmpipe and triton each bring an LLVM); Workbench renders preload it."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("bpy")
+    code = ("import bpy\n"
+            "from unipixie.core.blender_io.render import RenderSettings, render_views\n"
+            "bpy.ops.mesh.primitive_cube_add()\n"
+            "render_views(bpy.context.active_object, RenderSettings(view_count=1, resolution=32, engine='workbench'))\n"
+            "import open_clip\n"
+            "from unipixie.core.clip_features import offline_extractor\n"
+            "print('features', tuple(offline_extractor()(__import__('numpy').zeros((1, 32, 32, 3))).shape))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "features (1, 14, 14, 32)" in proc.stdout

@@ -128,6 +128,7 @@ def run(args) -> list[dict]:
         extractors.append(cf.offline_extractor(device=device))
         load_times[extractors[1].name] = time.perf_counter() - t
 
+    load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     results = []
     with (temporary_scene("UniPixie benchmark") if not args.views_from else _null()) as scene:
         if not args.views_from:
@@ -161,17 +162,20 @@ def run(args) -> list[dict]:
                 print(f"saved views for --views-from: {path} ({path.stat().st_size / 1e6:.1f} MB)")
             case = f"{ext.name}, {subject}, {int(grid.occupancy.sum())} voxels, D = {grid.dim}"
             dev = _device_name(device)
+            load_after = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+            note = (f"host load average {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} CPU cores "
+                    "during the run (shared machine: CPU stages slow down with load)")
             total = []
             for r in range(1, args.runs + 1):
                 total.append(sum(times[k][r] for k in times if times[k]))
             for stage, values in times.items():
                 if values:
                     results.append({"case": case, "device": dev, "metric": f"{stage}_seconds",
-                                    "value": _median(values[1:]), "runs": args.runs})
+                                    "value": _median(values[1:]), "runs": args.runs, "note": note})
             results.append({"case": case, "device": dev, "metric": "total_seconds", "value": _median(total),
-                            "runs": args.runs})
+                            "runs": args.runs, "note": note})
             results.append({"case": case, "device": dev, "metric": "load_model_seconds",
-                            "value": float(load_times[ext.name]), "runs": 1})
+                            "value": float(load_times[ext.name]), "runs": 1, "note": note})
     return results
 
 

@@ -461,12 +461,28 @@ def _find_output(out_dir: Path, prefix: str, item: str, suffix: str) -> Path:
     return found[-1]
 
 
+def preload_before_opengl() -> None:
+    """Import open_clip (torch, torchvision and triton's bundled LLVM) before Blender's OpenGL starts.
+
+    With bpy 5.0.1 on Linux under Mesa, importing triton *after* a Workbench render (an EGL context on
+    llvmpipe, which has its own LLVM) kills the process with a segmentation fault; importing it before is
+    fine.  Workbench renders therefore load it first when it is installed.
+    """
+    import importlib
+    import importlib.util
+
+    if importlib.util.find_spec("open_clip") is not None:
+        importlib.import_module("open_clip")
+
+
 def render_job(objects, settings: RenderSettings | None = None) -> Generator[tuple[float, str], None, Views]:
     """Render the subject's views one by one; yields (fraction done, status) after each view and returns
     :class:`~unipixie.core.types.Views` (see module docstring).  Closing the generator (Esc) stops after
     the current view and removes everything it created."""
     settings = settings or RenderSettings()
     objs = geometry_objects(_as_list(objects))
+    if settings.engine == "workbench":
+        preload_before_opengl()
     before = snapshot_ids()
     tmp_dir = Path(tempfile.mkdtemp(prefix="unipixie-views-"))
     try:
