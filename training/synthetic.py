@@ -53,9 +53,9 @@ def procedural_occupancy(resolution: int, target_voxels: int) -> np.ndarray:
     coords = _grid_coords(R)
 
     def shape(s):
-        body = np.sum(((coords - [0.5, 0.5, 0.42]) / ([0.28, 0.24, 0.22] * np.float64(s))) ** 2, axis=-1) <= 1.0
-        top = np.all(np.abs((coords - [0.5, 0.5, 0.42 + 0.26 * s]) / ([0.12, 0.12, 0.08] * np.float64(s))) <= 1, axis=-1)
-        d = (coords - [0.5 + 0.3 * s, 0.5, 0.42]) / ([0.05, 0.05, 0.14] * np.float64(s))
+        body = np.sum(((coords - [0.5, 0.5, 0.42]) / (np.array([0.28, 0.24, 0.22]) * s)) ** 2, axis=-1) <= 1.0
+        top = np.all(np.abs((coords - [0.5, 0.5, 0.42 + 0.26 * s]) / (np.array([0.12, 0.12, 0.08]) * s)) <= 1, axis=-1)
+        d = (coords - [0.5 + 0.3 * s, 0.5, 0.42]) / (np.array([0.05, 0.05, 0.14]) * s)
         handle = (d[..., 0] ** 2 + d[..., 1] ** 2 <= 1) & (np.abs(d[..., 2]) <= 1)
         return body | top | handle
 

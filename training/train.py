@@ -24,7 +24,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -53,7 +53,8 @@ class TrainSettings:
     batch: global batch size (objects per step, split over the processes).
     warmup: linear warm-up steps; None = min(3000, steps // 10) (3000 is the paper's).
     preset / model: model size preset and per-field overrides (``{"width": 256}``).
-    fit_normalisation: fit the spring stiffness / softness and LBS normalisation to the data.
+    fit_normalisation: fit the spring stiffness / softness and LBS parameter normalisation to the data
+        (the MPM channels always use the fixed constants of :mod:`unipixie.core.model.normalization`).
     stop_after: stop (and save) after this many steps of this invocation, e.g. to fit a job's time
         limit; continue later with ``resume`` (the schedule still runs to ``steps``).
     """
@@ -75,7 +76,7 @@ class TrainSettings:
     workers: int = 0
     preset: str = "paper"
     model: dict = field(default_factory=dict)
-    fit_normalisation: bool = False
+    fit_normalisation: bool = True
     resume: bool = False
     allow_new_data: bool = False
     save_dtype: str = "float32"
@@ -251,7 +252,6 @@ def build_config(s: TrainSettings, first_sample, files):
     """The model config for a new run: preset + overrides, input sizes from the data."""
     from ..core.model.config import preset
     from ..core.model.normalization import fitted_norm, normalisation_to_dict
-    from .sample_format import TrainingSample
 
     g = first_sample.grid
     base = dict(feature_model=g.feature_model, feature_dim=g.dim, grid_resolution=g.geometry.resolution)
@@ -263,13 +263,13 @@ def build_config(s: TrainSettings, first_sample, files):
         import numpy as np
 
         k, eta, params = [], [], []
-        for f in files[: min(len(files), 256)]:
-            smp = TrainingSample.load(f)
-            if smp.spring is not None:
-                k += [smp.spring.stiffness_min, smp.spring.stiffness_max]
-                eta += [smp.spring.softness_min, smp.spring.softness_max]
-            if smp.lbs is not None:
-                params.append(smp.lbs.params)
+        for f in files[: min(len(files), 256)]:  # read only the target arrays (not the features)
+            with np.load(f, allow_pickle=False) as z:
+                if "spring_stiffness_min" in z.files:
+                    k += [z["spring_stiffness_min"], z["spring_stiffness_max"]]
+                    eta += [float(z["spring_softness_min"]), float(z["spring_softness_max"])]
+                if "lbs_params" in z.files:
+                    params.append(z["lbs_params"])
         norms = cfg.norms()
         if k:
             norms["stiffness"] = fitted_norm(norms["stiffness"], np.concatenate(k))
@@ -327,12 +327,11 @@ def train(s: TrainSettings, progress=None) -> dict:
         if not is_checkpoint(out):
             raise UserError(f"--resume: no checkpoint in {out} to continue")
         cfg = read_config(out)
-        requested = build_config(s, first, files) if not s.fit_normalisation else None
-        if requested is not None:
-            diff = cfg.differences(requested)
-            if diff:
-                raise UserError(f"--resume: the checkpoint in {out} was made with another model config: "
-                                + "; ".join(diff) + " (use the original --preset/--set options)")
+        requested = build_config(replace(s, fit_normalisation=False), first, files)
+        diff = cfg.differences(requested, ignore=("normalisation",) if s.fit_normalisation else ())
+        if diff:
+            raise UserError(f"--resume: the checkpoint in {out} was made with another model config: "
+                            + "; ".join(diff) + " (use the original --preset/--set options)")
         model, _ = load_model(out, device="cpu", expect=cfg)
     else:
         cfg = build_config(s, first, files)
@@ -472,8 +471,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--save-every", type=int, default=500)
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--workers", type=int, default=0, help="data-loading worker processes per training process")
-    p.add_argument("--fit-normalisation", action="store_true",
-                   help="fit the spring stiffness/softness and LBS parameter normalisation to the data")
+    p.add_argument("--fixed-normalisation", action="store_true",
+                   help="use the default normalisation constants for spring stiffness/softness and LBS parameters "
+                        "instead of fitting them to the data")
     p.add_argument("--allow-new-data", action="store_true", help="with --resume: accept a changed dataset")
     p.add_argument("--save-dtype", choices=("float32", "bfloat16", "float16"), default="float32",
                    help="dtype of the saved model weights (bfloat16 halves a model to ship)")
@@ -502,7 +502,7 @@ def settings_from_args(args) -> TrainSettings:
                          weight_decay=args.weight_decay, warmup=args.warmup, grad_clip=args.grad_clip,
                          precision=args.precision, device=args.device, seed=args.seed, save_every=args.save_every,
                          log_every=args.log_every, workers=args.workers, preset=args.preset, model=overrides,
-                         fit_normalisation=args.fit_normalisation, resume=args.resume,
+                         fit_normalisation=not args.fixed_normalisation, resume=args.resume,
                          allow_new_data=args.allow_new_data, save_dtype=args.save_dtype,
                          dump_gradients=args.dump_gradients, stats_out=args.stats_out, stop_after=args.stop_after)
 

@@ -192,10 +192,10 @@ class ModelConfig:
             raise UserError(f"{path}: 'format' is {doc.get('format') if isinstance(doc, dict) else None!r}, expected {CONFIG_FORMAT!r}")
         return cls.from_dict(doc.get("config", {}), where=str(path))
 
-    def differences(self, other: "ModelConfig") -> list[str]:
-        """Human-readable ``field: mine != other`` lines for every differing field."""
+    def differences(self, other: "ModelConfig", ignore=()) -> list[str]:
+        """Human-readable ``field: mine != other`` lines for every differing field (except ``ignore``)."""
         a, b = self.to_dict(), other.to_dict()
-        return [f"{k}: {a[k]!r} != {b.get(k)!r}" for k in a if a[k] != b.get(k)]
+        return [f"{k}: {a[k]!r} != {b.get(k)!r}" for k in a if k not in ignore and a[k] != b.get(k)]
 
 
 PRESETS: dict[str, dict] = {

