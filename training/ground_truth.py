@@ -30,8 +30,10 @@ c = sqrt(M/ρ) (M the P-wave modulus), so a steel hammer at realistic E would ne
 c ≤ ``wave_speed_per_size`` × the object's size (an elastic wave crosses it at most
 that many times a second: faster objects look rigid at 60 frames per second).
 Labels (the annotated ranges) are never capped; every record says how much of the
-solid's mass was simulated at the cap (``capped_mass_fraction``).  Materials held
-fixed (stationary class, the clamp box) are not capped: the solver does not step them.
+free (not held) solid's mass was simulated at the cap (``capped_mass_fraction``).
+Held material (stationary class, the clamp box) is capped too — MPM does not step it,
+but the spring-mass network joins it to free anchors and the LBS clamp penalty
+scales with the largest E.
 
 Everything is deterministic for a given object and settings (CPU); SI units.
 """
@@ -182,12 +184,11 @@ class Solid:
 
     def part_E_cap(self) -> np.ndarray:
         """(parts,) Pa: the largest E simulated for each part, the same at every α so that the simulated E
-        stays monotone in α: ρ_min c² / f(ν_max) (``f`` = :func:`p_wave_factor`); ``inf`` for parts of a
-        held-fixed class (the solver does not step them)."""
+        stays monotone in α: ρ_min c² / f(ν_max) (``f`` = :func:`p_wave_factor`).  Held parts (clamp,
+        stationary class) are capped too: MPM does not step them, but the spring-mass network joins them to
+        free anchors and the LBS clamp penalty scales with the largest E."""
         t = self.table
-        cap = t["density_min"] * self.wave_speed_cap ** 2 / p_wave_factor(t["nu_max"], t["material"])
-        held_cls = np.array([c.held_fixed for c in materials.MATERIAL_CLASSES])[t["material"]]
-        return np.where(held_cls, np.inf, cap)
+        return t["density_min"] * self.wave_speed_cap ** 2 / p_wave_factor(t["nu_max"], t["material"])
 
     def simulated_part_E(self, alpha: float) -> np.ndarray:
         """(parts,) Pa: the annotated E at ``alpha`` limited by :meth:`part_E_cap`."""
@@ -203,9 +204,9 @@ class Solid:
         held_cls = np.array([c.held_fixed for c in materials.MATERIAL_CLASSES])
         free = ~(self.scenario.pinned_mask(self.points) | held_cls[cls])
         cap = rho * self.wave_speed_cap ** 2 / p_wave_factor(nu, cls)
-        capped = free & (E > cap)
+        capped = E > cap
         mass = rho * self.point_volume
-        info = {"capped_mass_fraction": float(mass[capped].sum() / max(mass[free].sum(), 1e-30)) if free.any() else 0.0,
+        info = {"capped_mass_fraction": float(mass[capped & free].sum() / max(mass[free].sum(), 1e-30)) if free.any() else 0.0,
                 "wave_speed_cap": self.wave_speed_cap}
         return PointMaterial(self.points, np.where(capped, cap, E), nu, rho, cls), info
 
@@ -220,10 +221,10 @@ class Solid:
         cls = lab["material"][self.part].astype(np.int32)
         cap = self.part_E_cap()[self.part]
         free = ~self.held()
-        capped = free & (E > cap)
+        capped = E > cap
         E_sim = np.where(capped, cap, E)
         mass = rho * self.point_volume
-        info = {"capped_mass_fraction": float(mass[capped].sum() / max(mass[free].sum(), 1e-30)) if free.any() else 0.0,
+        info = {"capped_mass_fraction": float(mass[capped & free].sum() / max(mass[free].sum(), 1e-30)) if free.any() else 0.0,
                 "wave_speed_cap": self.wave_speed_cap}
         return PointMaterial(self.points, E_sim, nu, rho, cls), info
 
