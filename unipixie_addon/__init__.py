@@ -16,6 +16,7 @@ _MODULE_NAMES = (
     "panels",
     "operators_bake",
     "operators_features",
+    "operators_diagnose",
 )
 
 

@@ -63,7 +63,9 @@ REPORT_FORMAT = "unipixie.diagnosis/1"
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
 """Effects re-checked at half the time step (numerical dissipation looks like them)."""
 DEFAULT_MAX_ADDITIONS = 3
-DEFAULT_REGION_CLUSTERS = 8
+_SEPARATE_STARTS = ("material_damping",)
+"""Effects whose start grid spans decades of the stable time step: each start runs in its own launch."""
+DEFAULT_REGION_CLUSTERS = 6
 BASE_SCALE_BOUNDS = (0.05, 20.0)
 """Range of the E/ρ scale the base fit may use."""
 
@@ -108,6 +110,7 @@ class CandidateResult:
     tests: int = 1
     region: Optional[dict] = None
     evaluations: int = 0
+    seconds: float = 0.0
 
     @property
     def score(self) -> float:
@@ -122,7 +125,8 @@ class CandidateResult:
              "significant": bool(self.significant),
              "explained_beyond_base": _f(self.explained_beyond_base), "E_scale": _f(self.E_scale),
              "likelihood_ratio": _f(self.lr), "threshold": _f(self.threshold), "share_of_excess": _f(self.share),
-             "uncertainty": self.uncertainty, "reasons": list(self.reasons), "simulations": self.evaluations}
+             "uncertainty": self.uncertainty, "reasons": list(self.reasons), "simulations": self.evaluations,
+             "seconds": _f(self.seconds)}
         if self.holdout is not None:
             d["holdout"] = self.holdout
         if self.dt_check is not None:
@@ -254,6 +258,25 @@ class Diagnosis:
         return "\n".join(lines)
 
 
+def effect_spec(effect: fx.Effect) -> str:
+    """The command-line form of an effect (``name:key=value,...``), readable by :func:`effects.parse`.
+
+    ``stiffness_region`` regions are written as ``box=x0,y0,z0,x1,y1,z1`` or ``points=i+j+...``.
+    """
+    parts = []
+    for k, v in effect.params_dict().items():
+        if isinstance(v, dict):
+            if "box" in v:
+                parts.append("box=" + ",".join(f"{x:.6g}" for x in np.asarray(v["box"], dtype=float).reshape(-1)))
+            else:
+                parts.append("points=" + "+".join(str(int(i)) for i in v["points"]))
+        elif isinstance(v, list):
+            parts.append(f"{k}=" + ",".join(f"{x:.6g}" for x in v))
+        else:
+            parts.append(f"{k}={float(v):.6g}")
+    return effect.name + (":" + ",".join(parts) if parts else "")
+
+
 def _f(x):
     if x is None:
         return None
@@ -299,6 +322,28 @@ class _Problem:
         self.everything_box = np.stack([lo - pad, hi + pad])
         self.evaluations = 0
         self.sim_seconds = 0.0
+        self.sigma = 0.0  # measurement noise (m), set once estimated; scales the priors
+        self.size = 3 * self.n_obs  # length of the data part of a residual vector
+        self.sample_frame = np.nonzero(self.obs)[0]  # frame of each observed sample (residual order)
+
+    def with_priors(self, param: Parametrisation, u, data_residual: np.ndarray) -> np.ndarray:
+        """A data residual followed by the pseudo-residuals of ``param``'s priors at ``u``."""
+        extra = [self.sigma * (float(u[i]) - p.prior_center) / p.prior_width
+                 for i, p in enumerate(param.params) if p.prior_width > 0]
+        return np.concatenate([np.asarray(data_residual)[: self.size], np.asarray(extra, dtype=np.float64)])
+
+    def deformation_part(self, residual: np.ndarray) -> np.ndarray:
+        """The data residual with each frame's mean (over its observed points) removed (3·n_obs entries)."""
+        r = np.asarray(residual)[: self.size].reshape(-1, 3)
+        T = self.obs.shape[0]
+        cnt = np.maximum(np.bincount(self.sample_frame, minlength=T), 1)
+        mean = np.stack([np.bincount(self.sample_frame, r[:, k], minlength=T) for k in range(3)], axis=1) / cnt[:, None]
+        return (r - mean[self.sample_frame]).reshape(-1)
+
+    def sse(self, residual: np.ndarray) -> float:
+        """Squared error (m²) of the data part of a residual vector (priors excluded)."""
+        r = np.asarray(residual)[: self.size]
+        return float(r @ r)
 
     # effects for one model ---------------------------------------------------------------
     def model_effects(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> list:
@@ -334,13 +379,27 @@ class _Problem:
             return np.full(r.shape, 1e3)  # a diverged run: a huge, finite misfit
         return r
 
-    def residuals(self, param: Parametrisation, sim=None) -> Callable[[list], list]:
+    def residuals(self, param: Parametrisation, sim=None, separate: bool = False) -> Callable[[list], list]:
+        """Residual function for fits: the data residual (3·n_obs entries, metres) followed by one
+        pseudo-residual per parameter with a prior (see :class:`~.fit.FreeParam`).
+
+        ``separate`` runs each parameter set in its own launch (for sets whose stable time steps
+        differ a lot, e.g. a start grid over decades of damping)."""
+        priors = [(i, p) for i, p in enumerate(param.params) if p.prior_width > 0]
+
+        def with_priors(r, u):
+            return self.with_priors(param, u, r)
+
         def fn(us: list) -> list:
             lists = []
             for u in us:
                 scale, effs = param.realise(u)
                 lists.append(self.model_effects(scale, effs, param.fixed))
-            return [self.residual_of(p) for p in self.run(lists, sim)]
+            if separate:
+                pos = [self.run([one], sim)[0] for one in lists]
+            else:
+                pos = self.run(lists, sim)
+            return [with_priors(self.residual_of(p), np.asarray(u)) for p, u in zip(pos, us)]
 
         return fn
 
@@ -351,11 +410,16 @@ class _Problem:
 # --------------------------------------------------------------------------- problem scales
 @dataclass
 class _Scales:
+    """Duration (s), typical speed (m/s), mean E (Pa), |gravity| (m/s²), size (bounding-box diagonal, m),
+    mean density (kg/m³), largest extent (m)."""
+
     duration: float
     speed: float
     E: float
     gravity: float
     size: float
+    density: float
+    extent: float
 
 
 def _problem_scales(measurement, material) -> _Scales:
@@ -372,31 +436,50 @@ def _problem_scales(measurement, material) -> _Scales:
     size = float(np.linalg.norm(np.ptp(measurement.rest, axis=0)))
     duration = max(float(t[-1] - t[0]), 1e-6)
     speed = max(speed, v0, 0.1 * math.sqrt(max(g, 1e-3) * max(size, 1e-3)), 1e-3)
-    return _Scales(duration, speed, material.mean_E(), g, max(size, 1e-6))
+    extent = float(np.max(np.ptp(measurement.rest, axis=0)))
+    return _Scales(duration, speed, material.mean_E(), g, max(size, 1e-6), material.mean_density(), max(extent, 1e-6))
 
 
-def _start_values(name: str, sc: _Scales, E_now: float) -> tuple[list[dict], dict]:
-    """Start grid (list of {param: value}) and typical magnitudes for the effect ``name``."""
+@dataclass
+class _Plan:
+    """How to fit one effect here: start values, typical magnitudes and plausible bounds per parameter."""
+
+    starts: list
+    scales: dict
+    bounds: dict = field(default_factory=dict)
+
+
+def _plan(name: str, sc: _Scales, E_now: float) -> _Plan:
+    """Start grid, typical magnitudes and plausible bounds for the effect ``name`` in this problem.
+
+    The ranges follow from the problem's scales: drag rates against the duration D and the
+    typical speed v, a Kelvin–Voigt viscosity against E (η/E is a time: damping ratios from
+    ~0.01 to ~1 for vibrations between ~1 and ~300 Hz), a yield stress against E (yield strain).
+    """
     D = sc.duration
     ladder = [0.03, 0.1, 0.3, 1.0, 3.0]
     if name == "linear_drag":
-        return [{"c": x / D} for x in ladder], {"c": 1.0 / D}
+        return _Plan([{"c": x / D} for x in ladder], {"c": 1.0 / D})
     if name == "quadratic_drag":
         u = 1.0 / (sc.speed * D)
-        return [{"k": x * u} for x in ladder], {"k": u}
+        return _Plan([{"k": x * u} for x in ladder], {"k": u})
     if name == "material_damping":
-        return [{"eta": E_now * x} for x in (1e-5, 1e-4, 1e-3, 1e-2)], {"eta": E_now * 1e-3}
+        # critical damping of the fundamental mode: η ≈ 2E/ω₁ with ω₁ ≈ π c / L, c = sqrt(E/ρ)
+        eta_crit = 2.0 * E_now * sc.extent / (math.pi * math.sqrt(E_now / sc.density))
+        return _Plan([{"eta": eta_crit * x} for x in (0.01, 0.05, 0.25)], {"eta": eta_crit * 0.1},
+                     {"eta": (0.0, eta_crit)})
     if name == "ground_friction":
-        return [{"mu": x} for x in (0.05, 0.15, 0.3, 0.6, 1.0)], {"mu": 0.3}
+        return _Plan([{"mu": x} for x in (0.05, 0.15, 0.3, 0.6, 1.0)], {"mu": 0.3})
     if name == "plasticity":
-        return [{"yield_stress": E_now * x} for x in (3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1)], \
-            {"yield_stress": E_now * 1e-2}
+        return _Plan([{"yield_stress": E_now * x} for x in (3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1)],
+                     {"yield_stress": E_now * 1e-2}, {"yield_stress": (E_now * 1e-5, E_now * 10.0)})
     if name == "wind":
-        return [{"acceleration": np.zeros(3)}], {"acceleration": max(0.1 * sc.gravity, 0.1)}
+        return _Plan([{"acceleration": np.zeros(3)}], {"acceleration": max(0.1 * sc.gravity, 0.1)})
+    if name == "stiffness_region":
+        return _Plan([{"factor": 1.0}], {"factor": 1.0})
     # an effect added to the registry later: a few points across each scalar parameter's range
     cls = fx.get(name)
     starts: list[dict] = []
-    scales: dict = {}
     for p in cls.fittable_params():
         if p.size != 1:
             continue
@@ -409,7 +492,7 @@ def _start_values(name: str, sc: _Scales, E_now: float) -> tuple[list[dict], dic
             vals = list(np.linspace(lo, hi, 7)[1:-1])
         starts = [{p.name: v} for v in vals]
         break
-    return starts or [{}], scales
+    return _Plan(starts or [{}], {})
 
 
 def _null_kind(cls: type, p: fx.Param) -> str:
@@ -461,12 +544,13 @@ class _Reference:
     fixed: list
 
 
-def _param_for(ref: _Reference, extra: Sequence[fx.Effect], scales_by_name: dict,
+def _param_for(ref: _Reference, extra: Sequence[fx.Effect], plans: dict,
                fixed: Optional[list] = None) -> Parametrisation:
     effects = list(ref.effects) + list(extra)
     params: list[FreeParam] = [base_param(*BASE_SCALE_BOUNDS)]
     for i, e in enumerate(effects):
-        params += free_params_for(e, i, scales_by_name.get(e.name, {}))
+        plan = plans.get(e.name)
+        params += free_params_for(e, i, plan.scales if plan else {}, bounds=plan.bounds if plan else {})
     return Parametrisation(effects, params, list(ref.fixed if fixed is None else fixed), ref.scale)
 
 
@@ -474,7 +558,7 @@ def _param_for(ref: _Reference, extra: Sequence[fx.Effect], scales_by_name: dict
 def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_on: Iterable = (),
              add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
-             max_batch: int = 16, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 8,
+             max_batch: int = 16, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
              progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
@@ -521,6 +605,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         fx.check_supported([e], solver)
     names = [n for n in names if solver in fx.get(n).solvers]
     P = _Problem(measurement, sim, effects_on, progress, max_batch)
+    P.sigma = sigma
     sc = _problem_scales(measurement, material)
     # progress total is a rough count of simulations
     progress.total = max(progress.total, 40.0 * (len(names) + 2) * (1 + min(max_additions, 2)))
@@ -539,7 +624,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     starts = [np.array([math.log(s)]) for s in np.exp(np.linspace(math.log(0.25), math.log(4.0), 9))]
     best, costs, res = grid_search(P.residuals(base_fit_param), starts)
     if sse_baseline <= costs[best]:
-        u0, r0 = np.array([0.0]), ref0.residual
+        u0 = np.array([0.0])
+        r0 = P.with_priors(base_fit_param, u0, ref0.residual)
     else:
         u0, r0 = starts[best], res[best]
     lo, hi = base_fit_param.bounds()
@@ -547,15 +633,15 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                              max_iter=lm_iterations, progress=progress)
     base_scale = float(math.exp(bf.u[0]))
     say(f"2. base fit (E/ρ; E and density cannot be separated from gravity and inertia): E × {base_scale:.3g} → "
-        f"RMSE {1e3 * math.sqrt(bf.cost / P.n_obs):.2f} mm")
-    ref = _Reference(base_scale, [], bf.cost, bf.residual, list(effects_on))
+        f"RMSE {1e3 * math.sqrt(P.sse(bf.residual) / P.n_obs):.2f} mm")
+    ref = _Reference(base_scale, [], P.sse(bf.residual), bf.residual[:P.size], list(effects_on))
 
     # ---- 3.-6. rounds ---------------------------------------------------------------------------
     rounds: list[Round] = []
     history = [{"effects": [e.name for e in effects_on], "rmse": float(baseline.rmse), "E_scale": 1.0}]
     history_positions = [base_pos]
     added: list[fx.Effect] = []
-    scales_by_name = {n: _start_values(n, sc, material.mean_E() * base_scale)[1] for n in names}
+    plans = {n: _plan(n, sc, material.mean_E()) for n in names}
     not_applicable = _not_applicable(names, measurement, sigma)
     round_no = 0
     while True:
@@ -571,13 +657,15 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                 continue  # already added: its parameters are refitted with every later candidate
             progress.set_status(f"round {round_no}: fitting {name}")
             t0 = P.evaluations
+            w0 = time.perf_counter()
             if name == "stiffness_region":
-                c = _fit_region(P, ref, sc, material, scales_by_name, region_clusters, lm_iterations, sigma, progress)
+                c = _fit_region(P, ref, sc, material, plans, region_clusters, lm_iterations, sigma, progress)
             else:
-                c = _fit_candidate(P, ref, name, sc, material, scales_by_name, lm_iterations, progress)
+                c = _fit_candidate(P, ref, name, sc, material, plans, lm_iterations, progress)
             if c is None:
                 continue
             c.evaluations = P.evaluations - t0
+            c.seconds = time.perf_counter() - w0
             cands.append(c)
         # significance ---------------------------------------------------------------------------
         tests = sum(c.tests for c in cands)
@@ -628,11 +716,12 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         for c in cands:
             say(f"   {c.name:18s} RMSE {1e3 * c.rmse:8.2f} mm  explained {100 * c.explained:5.1f} %  "
                 f"Λ {c.lr:10.4g} (needs {c.threshold:.3g})  share {100 * c.share:5.1f} %  "
-                f"{'SIGNIFICANT' if c.significant else 'no'}  {_fmt_params(c.effect)}")
+                f"{'SIGNIFICANT' if c.significant else 'no'}  {_fmt_params(c.effect)}  "
+                f"[{c.evaluations} sims, {c.seconds:.1f} s]")
         for n, why in not_applicable.items():
             say(f"   {n:18s} not tried: {why}")
         # choose ---------------------------------------------------------------------------------------
-        if len(added) >= max_additions:
+        if max_additions == 0:
             break
         choice = None
         if len(added) < len(picks):
@@ -659,12 +748,13 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                         "params": [e.to_dict() for e in ref.effects]})
         say(f"   added {choice.name} ({_fmt_params(choice.effect)}), E × {ref.scale:.3g}: RMSE → "
             f"{1e3 * history[-1]['rmse']:.2f} mm")
-        scales_by_name.update({n: _start_values(n, sc, material.mean_E() * ref.scale)[1] for n in names
-                               if n not in [e.name for e in ref.effects]})
+        if len(added) >= max_additions:
+            say(f"   stopping after {len(added)} addition(s) (max_additions)")
+            break
 
     # ---- 7. base material on its own --------------------------------------------------------------
     progress.set_status("checking the base material")
-    base_material = _base_material_check(P, ref, material, sigma, lm_iterations, progress, scales_by_name)
+    base_material = _base_material_check(P, ref, material, sigma, lm_iterations, progress, plans)
     if base_material.get("looks_wrong"):
         say(f"   base material looks wrong: E/ρ × {base_material['E_scale']:.3g} "
             f"(RMSE {1e3 * base_material['rmse_stated_E']:.2f} mm with the stated E, "
@@ -712,10 +802,10 @@ def _not_applicable(names: Sequence[str], measurement, sigma: float) -> dict:
     return out
 
 
-def _fit_candidate(P: _Problem, ref: _Reference, name: str, sc: _Scales, material, scales_by_name: dict,
+def _fit_candidate(P: _Problem, ref: _Reference, name: str, sc: _Scales, material, plans: dict,
                    lm_iterations: int, progress: Progress) -> Optional[CandidateResult]:
     cls = fx.get(name)
-    starts_vals, _ = _start_values(name, sc, material.mean_E() * ref.scale)
+    starts_vals = list(plans[name].starts)
     template_vals = {}
     fixed = list(ref.fixed)
     replaced = next((e for e in fixed if e.name == name), None)
@@ -723,27 +813,77 @@ def _fit_candidate(P: _Problem, ref: _Reference, name: str, sc: _Scales, materia
         fixed = [e for e in fixed if e is not replaced]
         starts_vals = [dict(replaced.values)] + starts_vals
     template = cls(**(dict(replaced.values) if replaced is not None else {**template_vals, **starts_vals[0]}))
-    param = _param_for(ref, [template], scales_by_name, fixed)
+    param = _param_for(ref, [template], plans, fixed)
     ufn = P.residuals(param)
     base_u = param.internal()
     idx = [i for i, p in enumerate(param.params) if p.slot == len(param.effects) - 1]
     starts = []
+    E_variants = [base_u[0]]
+    if abs(base_u[0]) > math.log(1.2):  # the base fit may have absorbed the effect: also start from the stated E
+        E_variants.append(0.0)
     for sv in starts_vals:
         e = cls(**{**template.values, **sv})
         p2 = param.with_internal(base_u)
         p2.effects[-1] = e
-        starts.append(p2.internal())
+        for uE in E_variants:
+            u = p2.internal()
+            u[0] = uE
+            starts.append(u)
     if name == "wind":
         starts.append(_wind_start(P, ref, param, base_u, idx))
-    best, costs, res = grid_search(ufn, starts)
+    best, costs, res = grid_search(P.residuals(param, separate=name in _SEPARATE_STARTS), starts)
+    u_start, r_start = starts[best], res[best]
+    null = _null_start(param, ref, replaced is None)
+    if null is not None and ref.sse <= costs[best]:
+        u_start, r_start = null, P.with_priors(param, null, ref.residual)  # the reference itself (effect off)
     lo, hi = param.bounds()
-    fit = levenberg_marquardt(ufn, starts[best], lo, hi, param.steps(), r0=res[best], max_iter=lm_iterations,
+    fit = levenberg_marquardt(ufn, u_start, lo, hi, param.steps(), r0=r_start, max_iter=lm_iterations,
                               progress=progress)
+    if null is not None and P.sse(fit.residual) > ref.sse:  # never report worse than the reference itself
+        fit = FitResult(null, ref.sse, P.with_priors(param, null, ref.residual), fit.jacobian, fit.evaluations,
+                        fit.iterations, fit.converged, fit.trace)
     scale, effs = param.realise(fit.u)
     interior, bounded = _count_kinds(effs[-1])
-    return CandidateResult(name=name, effect=effs[-1], effects=effs, E_scale=scale, sse=fit.cost,
-                           rmse=math.sqrt(fit.cost / P.n_obs), residual=fit.residual, fit=fit, parametrisation=param,
+    return CandidateResult(name=name, effect=effs[-1], effects=effs, E_scale=scale, sse=P.sse(fit.residual),
+                           rmse=math.sqrt(P.sse(fit.residual) / P.n_obs), residual=fit.residual[:P.size], fit=fit,
+                           parametrisation=param,
                            free_params=list(param.params), interior=interior, bounded=bounded, tests=1)
+
+
+def _null_start(param: Parametrisation, ref: _Reference, add_new: bool) -> Optional[np.ndarray]:
+    """Internal vector of the reference model inside ``param`` (the new effect switched off), or
+    ``None`` when the effect has no "off" value inside its bounds."""
+    if not add_new:
+        return None
+    u = param.internal()
+    new_slot = len(param.effects) - 1
+    cls = type(param.effects[-1])
+    lo, hi = param.bounds()
+    for i, p in enumerate(param.params):
+        if p.slot != new_slot:
+            continue
+        fp = next(q for q in cls.fittable_params() if q.name == p.name)
+        kind = _null_kind(cls, fp)
+        if kind == "bounded":
+            # "off" at the bound where the effect vanishes: the lower one for drag, friction and damping;
+            # else the upper one (a yield stress far above any stress in the problem)
+            u[i] = lo[i] if _is_off(cls, fp, fp.lower) else hi[i]
+        else:
+            neutral = 0.0 if _is_off(cls, fp, 0.0) else 1.0
+            u[i] = p.to_internal(neutral) if (not p.log or neutral > 0) else lo[i]
+    return u
+
+
+def _is_off(cls: type, p: fx.Param, value) -> bool:
+    """Does parameter ``p`` at ``value`` leave the base model unchanged?"""
+    ctx = fx.EffectContext(sample_positions=np.zeros((1, 3)), tracked_rest_positions=np.zeros((1, 3)))
+    try:
+        kwargs = {p.name: value if p.size == 1 else np.full(p.size, value)}
+        if cls is fx.StiffnessRegion:
+            kwargs["region"] = {"box": [[-1, -1, -1], [1, 1, 1]]}
+        return fx.combine([cls(**kwargs)], ctx).is_base()
+    except UserError:
+        return False
 
 
 def _wind_start(P: _Problem, ref: _Reference, param: Parametrisation, base_u: np.ndarray, idx: list) -> np.ndarray:
@@ -790,65 +930,73 @@ def _region_candidates(rest: np.ndarray, clusters: int) -> list[tuple[str, dict,
     return out
 
 
-def _fit_region(P: _Problem, ref: _Reference, sc: _Scales, material, scales_by_name: dict, clusters: int,
+def _fit_region(P: _Problem, ref: _Reference, sc: _Scales, material, plans: dict, clusters: int,
                 lm_iterations: int, sigma: float, progress: Progress) -> Optional[CandidateResult]:
     rest = np.asarray(P.m.rest, dtype=np.float64)
     regions = _region_candidates(rest, clusters)
     if not regions:
         return None
-    # E sensitivity of the reference (to compensate probes for a global stiffness change)
-    up = 1.25
+    # Screening (a score test, used only to shortlist): one probe per region gives the sensitivity of the
+    # residual to log(factor) there; together with the sensitivity to a global E change, the best
+    # linearised reduction of the squared error is predicted for every region.
+    up, probe = 1.25, 2.5
     probe_lists = [P.model_effects(ref.scale * up, ref.effects, ref.fixed)]
-    factors = (1.0 / 3.0, 3.0)
     for _, region, _ in regions:
-        for f in factors:
-            probe_lists.append(P.model_effects(ref.scale, list(ref.effects) + [fx.make("stiffness_region", factor=f,
-                                                                                          region=region)], ref.fixed))
+        probe_lists.append(P.model_effects(ref.scale, list(ref.effects) + [fx.make("stiffness_region", factor=probe,
+                                                                                      region=region)], ref.fixed))
     pos = P.run(probe_lists)
-    rE = P.residual_of(pos[0]) - ref.residual
-    jE = rE / math.log(up)
-    jj = float(jE @ jE)
+    r0 = ref.residual
+    jE = (P.residual_of(pos[0]) - r0) / math.log(up)
     scored = []
     for i, (label, region, members) in enumerate(regions):
-        best = math.inf
-        best_f = 1.0
-        for j, f in enumerate(factors):
-            r = P.residual_of(pos[1 + 2 * i + j])
-            comp = float(r @ r) - ((float(r @ jE) ** 2) / jj if jj > 0 else 0.0)
-            if comp < best:
-                best, best_f = comp, f
-        scored.append((best, i, best_f))
+        jR = (P.residual_of(pos[1 + i]) - r0) / math.log(probe)
+        A = np.stack([jE, jR], axis=1)
+        coef, *_ = np.linalg.lstsq(A, -r0, rcond=None)
+        predicted = float(np.sum((r0 + A @ coef) ** 2))
+        log_f = float(np.clip(coef[1], math.log(0.2), math.log(5.0)))
+        scored.append((predicted, i, math.exp(log_f) if abs(log_f) > 1e-3 else probe))
     scored.sort()
     results = []
-    for best, i, f0 in scored[:3]:
+    for best, i, f0 in scored[:2]:
         label, region, members = regions[i]
         template = fx.make("stiffness_region", factor=f0, region=region)
-        param = _param_for(ref, [template], scales_by_name)
+        param = _param_for(ref, [template], plans)
         ufn = P.residuals(param)
         lo, hi = param.bounds()
         fit = levenberg_marquardt(ufn, param.internal(), lo, hi, param.steps(), max_iter=lm_iterations,
                                   progress=progress)
         results.append((fit, param, label, region, members))
-    fit, param, label, region, members = min(results, key=lambda x: x[0].cost)
+    fit, param, label, region, members = min(results, key=lambda x: P.sse(x[0].residual))
+    if P.sse(fit.residual) > ref.sse:  # never report worse than the reference itself: factor 1
+        u = param.internal()
+        u[0] = math.log(ref.scale)
+        u[-1] = 0.0
+        fit = FitResult(u, ref.sse, P.with_priors(param, u, ref.residual), fit.jacobian, fit.evaluations,
+                        fit.iterations, fit.converged, fit.trace)
     scale, effs = param.realise(fit.u)
     eff = effs[-1]
     reg = {"name": label, "points": [int(i) for i in members], "box": region_box(rest, members),
            "regions_tried": len(regions)}
     interior, bounded = _count_kinds(eff)
-    return CandidateResult(name="stiffness_region", effect=eff, effects=effs, E_scale=scale, sse=fit.cost,
-                           rmse=math.sqrt(fit.cost / P.n_obs), residual=fit.residual, fit=fit, parametrisation=param,
+    return CandidateResult(name="stiffness_region", effect=eff, effects=effs, E_scale=scale, sse=P.sse(fit.residual),
+                           rmse=math.sqrt(P.sse(fit.residual) / P.n_obs), residual=fit.residual[:P.size], fit=fit,
+                           parametrisation=param,
                            free_params=list(param.params), interior=interior, bounded=bounded, tests=len(regions),
                            region=reg)
 
 
 # --------------------------------------------------------------------------- checks
 def _window_residuals(fn: Callable[[list], list], keep: np.ndarray, store: dict) -> Callable[[list], list]:
-    """Residuals restricted to the entries ``keep``; full residuals are remembered by parameter vector."""
+    """Residuals restricted to the data entries ``keep`` (prior pseudo-residuals after them are kept);
+    full residuals are remembered by parameter vector."""
     def w(us):
         full = fn(us)
+        out = []
         for u, r in zip(us, full):
             store[np.asarray(u).tobytes()] = r
-        return [r[keep] for r in full]
+            mask = np.concatenate([keep, np.ones(len(r) - len(keep), dtype=bool)])
+            out.append(r[mask])
+        return out
 
     return w
 
@@ -882,7 +1030,7 @@ def _holdout_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: floa
         full = store.get(np.asarray(fit.u).tobytes())
         if full is None:
             full = P.residuals(param)([fit.u])[0]
-        sse_test[key] = float(np.sum(full[test] ** 2))
+        sse_test[key] = float(np.sum(full[: P.size][test] ** 2))
         if key == "reference":
             cache["reference"] = sse_test[key]
     out.update({"sse_reference": sse_test["reference"], "sse_candidate": sse_test["candidate"],
@@ -936,7 +1084,7 @@ def _half_step_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: fl
         lo, hi = param.bounds()
         fit = levenberg_marquardt(fn, u0, lo, hi, param.steps(), max_iter=max(3, lm_iterations // 2),
                                   progress=progress)
-        sses[key] = fit.cost
+        sses[key] = P.sse(fit.residual)
         if key == "candidate":
             _, effs = param.realise(fit.u)
             out["params_half_step"] = effs[-1].params_dict()
@@ -951,7 +1099,7 @@ def _half_step_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: fl
 
 
 def _base_material_check(P: _Problem, ref: _Reference, material, sigma: float, lm_iterations: int,
-                         progress: Progress, scales_by_name: dict) -> dict:
+                         progress: Progress, plans: dict) -> dict:
     """Is E/ρ (with the effects found) significantly different from the stated value?"""
     note = ("under gravity and inertia alone the motion depends on E/ρ only: E and density cannot both be "
             "fitted, so the scale applies to E at the stated density (equivalently to 1/ρ)")
@@ -959,20 +1107,32 @@ def _base_material_check(P: _Problem, ref: _Reference, material, sigma: float, l
     effects = list(ref.effects)
     params = []
     for i, e in enumerate(effects):
-        params += free_params_for(e, i, scales_by_name.get(e.name, {}))
+        plan = plans.get(e.name)
+        params += free_params_for(e, i, plan.scales if plan else {}, bounds=plan.bounds if plan else {})
     param = Parametrisation(effects, params, list(ref.fixed), 1.0)
     fn = P.residuals(param)
     if params:
         lo, hi = param.bounds()
         fit = levenberg_marquardt(fn, param.internal(), lo, hi, param.steps(), max_iter=lm_iterations,
                                   progress=progress)
-        sse_stated = fit.cost
+        sse_stated = P.sse(fit.residual)
+        r_stated = fit.residual
     else:
-        sse_stated = float(np.sum(fn([np.zeros(0)])[0] ** 2))
+        r_stated = fn([np.zeros(0)])[0]
+        sse_stated = P.sse(r_stated)
     lr = sig.likelihood_ratio(sse_stated, ref.sse, sigma)
     thr = sig.lr_threshold(1, 0, sig.ALPHA, 1)
     share = sig.share_of_excess(sse_stated, ref.sse, P.n_obs, sigma)
-    looks_wrong = bool(lr >= thr and share >= sig.MIN_SHARE and abs(math.log(ref.scale)) > math.log(1.02))
+    # E/ρ acts on the motion through deformation; a change that only moves the centre of mass (e.g. by
+    # changing the solver's stable time step and with it the time-integration error of free flight) is not
+    # evidence about the material.  The same tests are therefore also required of the residual with each
+    # frame's mean displacement removed.
+    def_stated = P.sse(P.deformation_part(r_stated))
+    def_fitted = P.sse(P.deformation_part(ref.residual))
+    lr_def = sig.likelihood_ratio(def_stated, def_fitted, sigma)
+    share_def = sig.share_of_excess(def_stated, def_fitted, P.n_obs, sigma)
+    looks_wrong = bool(lr >= thr and share >= sig.MIN_SHARE and lr_def >= thr and share_def >= sig.MIN_SHARE
+                       and abs(math.log(ref.scale)) > math.log(1.02))
     E_stated = material.mean_E()
     return {"E_scale": float(ref.scale), "E_stated": E_stated, "E_fitted": E_stated * ref.scale,
             "density_stated": material.mean_density(),
@@ -980,6 +1140,7 @@ def _base_material_check(P: _Problem, ref: _Reference, material, sigma: float, l
             "E_over_density_fitted": E_stated * ref.scale / material.mean_density(),
             "rmse_stated_E": math.sqrt(sse_stated / P.n_obs), "rmse_fitted_E": math.sqrt(ref.sse / P.n_obs),
             "likelihood_ratio": _f(lr), "threshold": _f(thr), "share_of_excess": _f(share),
+            "likelihood_ratio_deformation": _f(lr_def), "share_of_excess_deformation": _f(share_def),
             "looks_wrong": looks_wrong, "note": note}
 
 

@@ -57,6 +57,10 @@ class FreeParam:
     scale: float = 1.0
     floor: float = 0.0
     step: float = 0.02
+    prior_width: float = 0.0
+    """> 0: a weak prior keeps the parameter near its reference value where the data do not
+    constrain it: a pseudo-residual σ·(u − u_ref)/prior_width joins the fit (internal units)."""
+    prior_center: float = 0.0
 
     @property
     def label(self) -> str:
@@ -277,24 +281,33 @@ def levenberg_marquardt(residuals: ResidualBatch, u0: np.ndarray, lower: np.ndar
 
 # --------------------------------------------------------------------------- helpers for effects
 def free_params_for(effect: fx.Effect, slot: int, scales: dict | None = None,
-                    names: Sequence[str] | None = None) -> list[FreeParam]:
+                    names: Sequence[str] | None = None, bounds: dict | None = None) -> list[FreeParam]:
     """Free coordinates for the fittable parameters of ``effect`` (vectors expanded).
 
     scales: ``{param name: typical magnitude}`` — the internal unit of linear parameters and
     the floor (× 1e-4) of log parameters bounded at zero.
+    bounds: ``{param name: (lower, upper)}`` — a plausible range for this problem, intersected
+    with the registry's bounds (a fit never leaves the registry's range).
     """
     scales = scales or {}
+    bounds = bounds or {}
     out = []
     for p in effect.fittable_params():
         if names is not None and p.name not in names:
             continue
         typical = float(scales.get(p.name, _default_typical(p)))
+        lower, upper = p.lower, p.upper
+        if p.name in bounds:
+            lower = max(lower, float(bounds[p.name][0]))
+            upper = min(upper, float(bounds[p.name][1]))
+            if not lower < upper:
+                lower, upper = p.lower, p.upper
         for c in range(p.size):
             if p.log_scale:
-                floor = typical * 1e-4 if p.lower <= 0 else 0.0
-                out.append(FreeParam(slot, p.name, c, p.lower, p.upper, log=True, floor=floor, step=0.05))
+                floor = typical * 1e-4 if lower <= 0 else 0.0
+                out.append(FreeParam(slot, p.name, c, lower, upper, log=True, floor=floor, step=0.05))
             else:
-                out.append(FreeParam(slot, p.name, c, p.lower, p.upper, log=False, scale=typical, step=0.02))
+                out.append(FreeParam(slot, p.name, c, lower, upper, log=False, scale=typical, step=0.02))
     return out
 
 
@@ -308,9 +321,12 @@ def _default_typical(p: fx.Param) -> float:
     return 1.0
 
 
-def base_param(lower: float = 0.05, upper: float = 20.0) -> FreeParam:
-    """The base material's E/ρ scale as a free log parameter."""
-    return FreeParam(BASE, "E_scale", 0, lower, upper, log=True, step=0.03)
+def base_param(lower: float = 0.05, upper: float = 20.0, center: float = 1.0) -> FreeParam:
+    """The base material's E/ρ scale as a free log parameter, with a weak prior at ``center``
+    (a factor of 10 away costs as much as one noise σ² — nothing against real data, but the
+    scale stays put when the motion does not depend on it, e.g. rigid free flight)."""
+    return FreeParam(BASE, "E_scale", 0, lower, upper, log=True, step=0.03, prior_width=math.log(10.0),
+                     prior_center=math.log(center))
 
 
 def uncertainty(fit: FitResult, params: Sequence[FreeParam], sigma2: float) -> list[Optional[float]]:

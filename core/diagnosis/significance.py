@@ -32,6 +32,11 @@ MIN_SHARE = 0.3
 """Smallest share of the reference model's structured (above-noise) squared error an effect must remove."""
 HOLDOUT_FRACTION = 0.7
 """Effects are refitted on this early fraction of the duration and scored on the rest."""
+NOISE_FLOOR_UNCERTAINTY = 0.5
+"""An excess squared error below this fraction of the noise floor's is not resolved: the noise σ is
+estimated from the tracks (uncertain by several per cent, real noise is never quite white) and a
+base model that is close but not identical leaves about that much; an effect must remove a share
+of at least this much to count."""
 
 
 def chibar_tail(c: float, interior: int, bounded: int) -> float:
@@ -73,5 +78,6 @@ def noise_floor_sse(observed_samples: int, sigma: float) -> float:
 def share_of_excess(sse_ref: float, sse_new: float, observed_samples: int, sigma: float) -> float:
     """(SSE_ref − SSE_new) / (SSE_ref − noise floor): the part of the above-noise error removed (can exceed 1)."""
     excess = sse_ref - noise_floor_sse(observed_samples, sigma)
-    floor = 0.05 * noise_floor_sse(observed_samples, sigma)  # the excess is only known to a few % of the floor
+    # an excess below NOISE_FLOOR_UNCERTAINTY of the noise floor is not resolved: it counts as that much
+    floor = NOISE_FLOOR_UNCERTAINTY * noise_floor_sse(observed_samples, sigma)
     return (sse_ref - sse_new) / max(excess, floor, 1e-300)

@@ -18,7 +18,7 @@ Scenarios (ground z = 0):
   bounces, vibrates and slides.
 * ``clamped``: the low-x end (15 % of the length) held in a clamp, no ground; sags and
   vibrates under gravity.
-* ``throw``: thrown at (1.5, 0, 2.5) m/s spinning at 3 rad/s about y, no ground: free flight.
+* ``throw``: thrown at (1.5, 0, 2.5) m/s, no ground: free flight (``spin`` adds a rotation about y).
 * ``slide``: resting on the ground, pushed along x at 1.5 m/s.
 """
 
@@ -96,8 +96,10 @@ def make_shape(shape: str, points: int = 250):
     return best
 
 
-def make_scenario(name: str, mesh, material: MeasuredMaterial, notes: str = ""):
-    """Place ``mesh`` (moved in place) for the scenario and return its :class:`Scenario`."""
+def make_scenario(name: str, mesh, notes: str = "", spin: float = 0.0):
+    """Place ``mesh`` (moved in place) for the scenario and return its :class:`Scenario`.
+
+    spin: rad/s about y added to the initial motion (all scenarios but ``clamped``)."""
     from ...solvers.scenario import Scenario
 
     lo, hi = mesh.bounds
@@ -105,7 +107,8 @@ def make_scenario(name: str, mesh, material: MeasuredMaterial, notes: str = ""):
     if name == "drop":
         mesh.apply_translation([-mesh.bounds[0][0] - ext[0] / 2, -mesh.bounds[0][1] - ext[1] / 2,
                                 0.15 - mesh.bounds[0][2]])
-        return Scenario(ground_height=0.0, initial_velocity=[0.5, 0.0, 0.0], notes=notes)
+        return Scenario(ground_height=0.0, initial_velocity=[0.5, 0.0, 0.0], initial_angular_velocity=[0, spin, 0],
+                        notes=notes)
     if name == "clamped":
         mesh.apply_translation([-mesh.bounds[0][0], -mesh.bounds[0][1] - ext[1] / 2,
                                 0.5 - mesh.bounds[0][2] - ext[2] / 2])
@@ -114,12 +117,13 @@ def make_scenario(name: str, mesh, material: MeasuredMaterial, notes: str = ""):
         return Scenario(ground_height=None, pinned_box=clamp, notes=notes)
     if name == "throw":
         mesh.apply_translation(-mesh.bounds.mean(0) + np.array([0.0, 0.0, 1.0]))
-        return Scenario(ground_height=None, initial_velocity=[1.5, 0.0, 2.5], initial_angular_velocity=[0.0, 3.0, 0.0],
+        return Scenario(ground_height=None, initial_velocity=[1.5, 0.0, 2.5], initial_angular_velocity=[0.0, spin, 0.0],
                         notes=notes)
     if name == "slide":
         mesh.apply_translation([-mesh.bounds[0][0] - ext[0] / 2, -mesh.bounds[0][1] - ext[1] / 2,
                                 -mesh.bounds[0][2] + 1e-4])
-        return Scenario(ground_height=0.0, initial_velocity=[1.5, 0.0, 0.0], notes=notes)
+        return Scenario(ground_height=0.0, initial_velocity=[1.5, 0.0, 0.0], initial_angular_velocity=[0, 0, spin],
+                        notes=notes)
     raise UserError(f"unknown scenario {name!r}; choose one of: {', '.join(SCENARIOS)}")
 
 
@@ -144,7 +148,8 @@ def occlusion_mask(frames: int, points: int, fraction: float, rng: np.random.Gen
 def synthesize(effects: Sequence = (), solver: str = "mpm", *, shape: str = "cube", scenario: str = "drop",
                noise: float = 0.001, occlusion: float = 0.1, duration: float = 1.0, fps: float = 100.0,
                points: int = 250, E: float = 2.0e5, nu: float = 0.3, density: float = 1000.0,
-               true_E_scale: float = 1.0, seed: int = 0, device: str = "cpu", settings=None,
+               true_E_scale: float = 1.0, spin: float = 0.0, velocity: Optional[Sequence[float]] = None,
+               height: Optional[float] = None, seed: int = 0, device: str = "cpu", settings=None,
                progress: Optional[Progress] = None) -> Measurement:
     """A measurement of ``shape`` in ``scenario`` simulated by ``solver`` with hidden ``effects``.
 
@@ -153,6 +158,9 @@ def synthesize(effects: Sequence = (), solver: str = "mpm", *, shape: str = "cub
     duration (s) and fps: the instants are ``0, 1/fps, ..., duration``.
     E (Pa), nu, density (kg/m³): the material the file states; the simulation uses
     ``E × true_E_scale`` (a model that is close but not identical to the truth).
+    spin: rad/s of initial rotation (about y; about z when sliding on the ground).
+    velocity: (3,) m/s initial velocity replacing the scenario's.  height: metres between the ground
+    and the lowest point at the start (``drop`` / ``slide``), replacing the scenario's.
     settings: the generating solver's settings (e.g. a finer discretisation than the diagnosis uses).
     """
     from ...solvers import api
@@ -172,8 +180,14 @@ def synthesize(effects: Sequence = (), solver: str = "mpm", *, shape: str = "cub
     fx.check_supported(effs, solver)
     believed = MeasuredMaterial(float(E), float(nu), float(density))
     mesh = make_shape(shape, points)
-    sc = make_scenario(scenario, mesh, believed, notes=f"synthetic measurement ({shape}, {scenario}) made by "
-                                                         "unipixie measure synth")
+    sc = make_scenario(scenario, mesh, notes=f"synthetic measurement ({shape}, {scenario}) made by unipixie measure synth",
+                       spin=float(spin))
+    if velocity is not None:
+        sc.initial_velocity = np.asarray(velocity, dtype=np.float64).reshape(3)
+    if height is not None:
+        if sc.ground_height is None:
+            raise UserError(f"the {scenario} scenario has no ground; 'height' applies to drop and slide")
+        mesh.apply_translation([0.0, 0.0, sc.ground_height + float(height) - mesh.bounds[0][2]])
     frames = int(round(duration * fps)) + 1
     times = np.arange(frames) / fps
     body = Body.from_mesh(mesh)
@@ -189,7 +203,9 @@ def synthesize(effects: Sequence = (), solver: str = "mpm", *, shape: str = "cub
     measured[hidden] = np.nan
     truth = {"effects": [e.to_dict() for e in effs], "solver": solver, "true_E_scale": float(true_E_scale),
              "noise_sigma": float(noise), "occlusion": float(occlusion), "shape": shape, "scenario": scenario,
-             "seed": int(seed)}
+             "spin": float(spin), "seed": int(seed), "velocity": None if velocity is None else list(map(float, velocity)),
+             "height": height,
+             "settings": {k: v for k, v in (settings or {}).items()} if isinstance(settings, dict) else None}
     faces = np.asarray(body.mesh.faces, dtype=np.int64)
     m = Measurement(positions=measured, times=times, scenario=sc, rest_positions=rest, faces=faces,
                     material=believed, extra_arrays={"synth_truth": np.array(json.dumps(_jsonable(truth)))},

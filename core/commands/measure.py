@@ -1,0 +1,159 @@
+"""``unipixie measure``: make, inspect and convert measurements (``unipixie.measurement/1``)."""
+
+from __future__ import annotations
+
+from ._common import device as device_type
+from ._common import existing_file
+
+NAME = "measure"
+HELP = "make a synthetic measurement with hidden effects, inspect or convert measurement files"
+EXAMPLES = """  unipixie measure synth --out m.npz --effect wind:acceleration=0,0.5,0 --solver mpm --noise 0.001 --occlusion 0.1
+  unipixie measure synth --out drag.npz --effect quadratic_drag:k=0.3 --scenario throw --shape cube
+  unipixie measure synth --out slide.npz --effect ground_friction:mu=0.3 --scenario slide --solver spring_mass
+  unipixie measure show m.npz
+  unipixie measure convert tracks.csv tracks.npz --scenario tracks.json"""
+
+
+def add_arguments(p):
+    from ..diagnosis.synth import SCENARIOS, SHAPES
+    from .diagnose import add_measurement_arguments
+
+    sub = p.add_subparsers(dest="measure_command", metavar="ACTION", required=True)
+    s = sub.add_parser("synth", help="simulate a scenario with hidden effects, add noise and occlusions, write a "
+                                     "measurement file",
+                       description="Simulate a scenario with effects switched on (any solver), add white noise and "
+                                   "occlusions, and write a unipixie.measurement/1 file whose scenario states the "
+                                   "material the model believes. The truth is kept in the archive key 'synth_truth'.")
+    s.add_argument("--out", required=True, metavar="FILE.npz", help="measurement file to write (.npz; .csv writes "
+                                                                     "t,id,x,y,z plus a scenario .json)")
+    s.add_argument("--effect", action="append", default=[], metavar="EFFECT",
+                   help="hidden effect, e.g. wind:acceleration=0,0.5,0 or stiffness_region:factor=3,box=0,0,0,1,1,1; "
+                        "repeatable (none: no hidden effect)")
+    s.add_argument("--solver", default="mpm", choices=("mpm", "lbs", "spring_mass"), help="generating solver "
+                                                                                           "(default mpm)")
+    s.add_argument("--noise", type=float, default=0.001, metavar="M", help="noise σ per coordinate in metres "
+                                                                          "(default 0.001)")
+    s.add_argument("--occlusion", type=float, default=0.1, help="fraction of samples hidden (default 0.1)")
+    s.add_argument("--shape", default="cube", choices=SHAPES)
+    s.add_argument("--scenario", default="drop", choices=SCENARIOS)
+    s.add_argument("--duration", type=float, default=1.0, metavar="S")
+    s.add_argument("--fps", type=float, default=100.0)
+    s.add_argument("--points", type=int, default=250, help="about this many tracked points (surface vertices)")
+    s.add_argument("--E", type=float, default=2.0e5, metavar="PA", help="Young's modulus stated in the file")
+    s.add_argument("--nu", type=float, default=0.3)
+    s.add_argument("--density", type=float, default=1000.0, metavar="KG_M3")
+    s.add_argument("--true-E-scale", type=float, default=1.0, metavar="X",
+                   help="simulate with E × X while the file states E (a model close to, not equal to, the truth)")
+    s.add_argument("--spin", type=float, default=0.0, metavar="RAD_S", help="initial rotation rate")
+    s.add_argument("--velocity", metavar="VX,VY,VZ", help="initial velocity in m/s (replaces the scenario's)")
+    s.add_argument("--height", type=float, metavar="M", help="start this high above the ground (drop, slide)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
+                   help="generating solver setting, e.g. cells_across=16 (mpm) or anchors=512 (spring_mass)")
+    s.add_argument("--device", type=device_type, default="cpu")
+    s.add_argument("--force", action="store_true", help="overwrite an existing output file")
+
+    sh = sub.add_parser("show", help="validate a measurement and print a summary (and the noise estimate)")
+    sh.add_argument("measurement", type=existing_file, metavar="MEASUREMENT")
+    add_measurement_arguments(sh)
+
+    cv = sub.add_parser("convert", help="convert a CSV (t,id,x,y,z) measurement into the .npz format, or back")
+    cv.add_argument("measurement", type=existing_file, metavar="INPUT")
+    cv.add_argument("output", metavar="OUTPUT")
+    cv.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    add_measurement_arguments(cv)
+
+
+def _check_output(path, force: bool):
+    from pathlib import Path
+
+    from ..errors import UserError
+
+    p = Path(path).expanduser()
+    if p.suffix.lower() not in (".npz", ".csv"):
+        raise UserError(f"{p}: the output must end in .npz or .csv")
+    if p.exists() and not force:
+        raise UserError(f"{p} exists; use --force to overwrite it")
+    return p
+
+
+def _write(m, p):
+    if p.suffix.lower() == ".csv":
+        return m.save_csv(p)
+    return m.save(p)
+
+
+def run(args) -> int:
+    if args.measure_command == "synth":
+        return _synth(args)
+    if args.measure_command == "show":
+        return _show(args)
+    return _convert(args)
+
+
+def _synth(args) -> int:
+    from ..diagnosis import synth
+    from ..progress import Progress
+    from ...solvers.warp_runtime import resolve_device
+    from .diagnose import parse_settings
+
+    out = _check_output(args.out, args.force)
+    effects = [e for e in args.effect if e.strip().lower() != "none"]
+    with Progress(total=1.0, description="synth") as progress:
+        m = synth.synthesize(effects, args.solver, shape=args.shape, scenario=args.scenario, noise=args.noise,
+                             occlusion=args.occlusion, duration=args.duration, fps=args.fps, points=args.points,
+                             E=args.E, nu=args.nu, density=args.density, true_E_scale=args.true_E_scale,
+                             spin=args.spin, velocity=_vector(args.velocity), height=args.height,
+                             seed=args.seed, device=resolve_device(args.device),
+                             settings=parse_settings(args.setting) or None, progress=progress)
+    path = _write(m, out)
+    print(f"wrote {path}: {m.summary()}")
+    print(f"hidden: {', '.join(effects) or 'no effect'} (simulated with {args.solver}, E × {args.true_E_scale:g}); "
+          f"noise σ = {args.noise:g} m, {100 * args.occlusion:.0f} % occluded")
+    return 0
+
+
+def _vector(text):
+    from ..errors import UserError
+
+    if text is None:
+        return None
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz") from None
+    if len(v) != 3:
+        raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz")
+    return v
+
+
+def _show(args) -> int:
+    import json
+
+    from ..diagnosis.compare import estimate_noise, noise_rmse
+    from .diagnose import load_measurement
+
+    m = load_measurement(args)
+    print(f"{m.source}: valid unipixie.measurement/1")
+    print(f"  {m.summary()}")
+    print(f"  times {m.times[0]:.4g} .. {m.times[-1]:.4g} s")
+    mat = m.material.to_dict() if m.material is not None else "none stated"
+    print(f"  material: {json.dumps(mat)}")
+    print(f"  scenario: {json.dumps(m.scenario.to_dict())}")
+    if m.frame_count >= 4:
+        s = estimate_noise(m.positions)
+        print(f"  noise estimated from the tracks: σ = {1e3 * s:.3g} mm per coordinate "
+              f"(noise floor RMSE {1e3 * noise_rmse(s):.3g} mm)")
+    for w in m.warnings:
+        print(f"  warning: {w}")
+    return 0
+
+
+def _convert(args) -> int:
+    from .diagnose import load_measurement
+
+    out = _check_output(args.output, args.force)
+    m = load_measurement(args)
+    path = _write(m, out)
+    print(f"wrote {path}: {m.summary()}")
+    return 0

@@ -1,0 +1,364 @@
+"""Panel operators for measurements and diagnosis: load, compare, diagnose, add the effect found.
+
+UI only: each operator calls :mod:`unipixie.core.measurement`, :mod:`unipixie.core.diagnosis` and
+:mod:`unipixie.core.blender_io.measure`.  Settings live on the scene (``scene.unipixie_diagnosis``).
+
+* **Load measurement** — a ``.npz`` / ``.csv`` file becomes an animated point cloud.
+* **Measurement from object** — the active object's keyframed/cached motion saved as a ``.npz``.
+* **Compare** — simulate the model as given (the measurement's material, the chosen solver, the
+  effects already on) and colour the measurement's points (and the source object, when it has
+  the same vertices) by per-point error.
+* **Diagnose** — the full diagnosis (ranking, significance, additions) in the background with a
+  progress bar (Esc cancels); writes ``diagnosis.json``, the pictures and ``diagnosis.html``.
+* **Add effect** — the identified effect (or the one picked) with its fitted parameters is added
+  to the effects that are on (and to the active object's bake effects); compare again to watch
+  the error fall.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import bpy
+from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from ..core.errors import UserError
+from ..solvers import effects as _effects
+from .jobs import JobOperator
+from .properties import DEVICE_ITEMS, SOLVER_ITEMS
+
+ADD_ITEMS = [("AUTO", "Identified", "The best significant effect of the last diagnosis")] + [
+    (name, cls.label, cls.law) for name, cls in _effects.EFFECTS.items()]
+
+
+class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
+    """Scene-level settings and results of the measurement diagnosis."""
+
+    measurement_path: StringProperty(name="Measurement", subtype="FILE_PATH", default="",
+                                     description="Measurement file (.npz unipixie.measurement/1 or .csv t,id,x,y,z)")
+    measurement_object: PointerProperty(name="Point cloud", type=bpy.types.Object,
+                                        description="The animated point cloud that shows the measurement")
+    source_object: PointerProperty(name="Source object", type=bpy.types.Object,
+                                   description="Object whose vertices are the tracked points (also coloured by error)")
+    solver: EnumProperty(name="Solver", items=SOLVER_ITEMS, default="spring_mass")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="cpu")
+    effects_on: StringProperty(name="Effects on", default="",
+                               description="Effects already in the model, separated by ';' (e.g. linear_drag:c=0.2)")
+    candidates: StringProperty(name="Candidates", default="",
+                               description="Effects to try, separated by ',' (empty: every effect of the registry)")
+    out_dir: StringProperty(name="Report folder", subtype="DIR_PATH", default="//unipixie_diagnosis")
+    max_additions: IntProperty(name="Max additions", default=3, min=0, max=7,
+                               description="Add at most this many effects (0: only rank them)")
+    add_effect: EnumProperty(name="Add", items=ADD_ITEMS, default="AUTO")
+    rmse: FloatProperty(name="RMSE (m)", default=0.0, precision=5)
+    identified: StringProperty(name="Identified", default="")
+    summary: StringProperty(name="Summary", default="")
+    report_path: StringProperty(name="Report", default="", subtype="FILE_PATH")
+
+
+def _settings(context) -> UniPixieDiagnosisSettings:
+    return context.scene.unipixie_diagnosis
+
+
+def _effects_on(text: str) -> list:
+    return [_effects.parse(s) for s in text.split(";") if s.strip()]
+
+
+def _load(settings):
+    from ..core.measurement import load
+
+    if not settings.measurement_path:
+        raise UserError("no measurement loaded: use 'Load measurement' first")
+    return load(bpy.path.abspath(settings.measurement_path))
+
+
+def _colour(settings, per_point, vmax=None) -> None:
+    from ..core.blender_io import measure as bio
+
+    for obj in (settings.measurement_object, settings.source_object):
+        if obj is not None and obj.type == "MESH" and len(obj.data.vertices) == len(per_point):
+            bio.write_error_attribute(obj, per_point, vmax=vmax)
+
+
+class UNIPIXIE_OT_load_measurement(bpy.types.Operator):
+    """Load a measurement file and show it as an animated point cloud"""
+
+    bl_idname = "unipixie.load_measurement"
+    bl_label = "Load measurement"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(subtype="FILE_PATH")
+    filter_glob: StringProperty(default="*.npz;*.csv", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from ..core.blender_io import measure as bio
+        from ..core.measurement import load
+
+        try:
+            m = load(bpy.path.abspath(self.filepath))
+            obj = bio.create_measurement_object(m, name=f"Measurement {Path(self.filepath).stem}",
+                                                source_path=self.filepath)
+        except UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        s = _settings(context)
+        s.measurement_path = self.filepath
+        s.measurement_object = obj
+        s.summary = m.summary()
+        self.report({"INFO"}, f"loaded {m.summary()}")
+        return {"FINISHED"}
+
+
+class UNIPIXIE_OT_measurement_from_object(bpy.types.Operator):
+    """Save the active object's motion over the scene's frame range as a measurement file"""
+
+    bl_idname = "unipixie.measurement_from_object"
+    bl_label = "Measurement from object"
+    bl_options = {"REGISTER"}
+
+    filepath: StringProperty(subtype="FILE_PATH")
+    filter_glob: StringProperty(default="*.npz", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        if not self.filepath:
+            self.filepath = bpy.path.abspath("//measurement.npz") if bpy.data.filepath else "measurement.npz"
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        from ..core.blender_io import measure as bio
+
+        obj = context.active_object
+        try:
+            m = bio.measurement_from_object(obj, scene=context.scene)
+            path = m.save(bpy.path.abspath(self.filepath))
+        except UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        s = _settings(context)
+        s.measurement_path = str(path)
+        s.source_object = obj
+        s.summary = m.summary()
+        for w in m.warnings:
+            self.report({"WARNING"}, w)
+        self.report({"INFO"}, f"saved {path}: {m.summary()}")
+        return {"FINISHED"}
+
+
+def _run_in_thread(fn, progress):
+    """Run ``fn()`` in a worker thread, yielding (fraction, status) until it ends; Esc cancels it."""
+    out: dict = {}
+
+    def work():
+        try:
+            out["value"] = fn()
+        except BaseException as exc:  # handed to the main thread
+            out["error"] = exc
+
+    th = threading.Thread(target=work, name="unipixie-diagnosis", daemon=True)
+    th.start()
+    try:
+        while th.is_alive():
+            th.join(0.05)
+            yield progress.fraction, progress.status or "working"
+    finally:
+        if th.is_alive():
+            progress.cancel()
+            th.join()
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+class UNIPIXIE_OT_compare_measurement(JobOperator, bpy.types.Operator):
+    """Simulate the model as given and colour the measured points by their error"""
+
+    bl_idname = "unipixie.compare_measurement"
+    bl_label = "Compare"
+    bl_options = {"REGISTER"}
+
+    def make_job(self, context):
+        from ..core.diagnosis.compare import compare
+        from ..core.progress import Progress
+        from ..solvers import api
+
+        s = _settings(context)
+        m = _load(s)
+        effects_on = _effects_on(s.effects_on)
+        solver, device = s.solver, s.device
+        progress = Progress(total=1.0, show_bar=False)
+
+        def work():
+            from ..solvers.warp_runtime import resolve_device
+
+            progress.set_status(f"preparing {solver}")
+            mat = m.require_material()
+            sim = api.prepare(solver, m.body(), mat.to_spec(m.rest), m.scenario, m.times - m.times[0],
+                              device=resolve_device(device))
+            progress.set_status("simulating")
+            traj = sim.run(effects_on, progress=progress)
+            return compare(traj.positions, m.positions, m.times, m.rest)
+
+        result = yield from _run_in_thread(work, progress)
+        return result
+
+    def finish(self, context, result):
+        s = _settings(context)
+        s.rmse = result.rmse
+        _colour(s, result.per_point)
+        s.summary = result.describe().splitlines()[0]
+        self.report({"INFO"}, f"RMSE {1e3 * result.rmse:.2f} mm; worst points {result.worst_points[:3]}")
+        return {"FINISHED"}
+
+
+class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
+    """Find the physical effect the model is missing: fit every effect, test significance, add, repeat"""
+
+    bl_idname = "unipixie.diagnose"
+    bl_label = "Diagnose"
+    bl_options = {"REGISTER"}
+
+    def make_job(self, context):
+        from ..core.diagnosis import diagnose
+        from ..core.progress import Progress
+        from ..solvers.warp_runtime import resolve_device
+
+        s = _settings(context)
+        m = _load(s)
+        effects_on = _effects_on(s.effects_on)
+        cands = [c.strip() for c in s.candidates.split(",") if c.strip()] or None
+        out_dir = bpy.path.abspath(s.out_dir) if s.out_dir else bpy.path.abspath("//unipixie_diagnosis")
+        solver, device, max_add = s.solver, s.device, s.max_additions
+        progress = Progress(total=100.0, show_bar=False)
+
+        def work():
+            return diagnose.diagnose(m, solver, out_dir=out_dir, effects_on=effects_on, max_additions=max_add,
+                                     device=resolve_device(device), candidates=cands, progress=progress)
+
+        result = yield from _run_in_thread(work, progress)
+        return result, out_dir
+
+    def finish(self, context, value):
+        result, out_dir = value
+        s = _settings(context)
+        s.rmse = result.final.rmse
+        s.identified = result.identified or ""
+        s.report_path = str(Path(out_dir) / "diagnosis.json")
+        s.summary = (f"{result.identified or 'nothing missing'}: {1e3 * result.baseline.rmse:.2f} → "
+                     f"{1e3 * result.final.rmse:.2f} mm (noise {1e3 * result.noise_rmse:.2f} mm)")
+        _colour(s, result.baseline.per_point)
+        self.report({"INFO"}, s.summary)
+        return {"FINISHED"}
+
+
+class UNIPIXIE_OT_add_effect(bpy.types.Operator):
+    """Add the identified (or chosen) effect with its fitted parameters to the model's effects"""
+
+    bl_idname = "unipixie.add_effect"
+    bl_label = "Add effect"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        from ..core.diagnosis.diagnose import effect_spec
+        from ..core.diagnosis.report import load_report
+
+        s = _settings(context)
+        try:
+            if not s.report_path:
+                raise UserError("no diagnosis yet: run 'Diagnose' first")
+            doc = load_report(bpy.path.abspath(s.report_path))
+            want = doc.get("identified") if s.add_effect == "AUTO" else s.add_effect
+            if not want:
+                raise UserError("the last diagnosis identified no effect; pick one to add anyway")
+            cand = next((c for c in doc["candidates"] if c["effect"] == want), None)
+            if cand is None:
+                raise UserError(f"{want!r} was not fitted in the last diagnosis")
+            spec = effect_spec(_effects.make(want, **cand["params"]))
+        except UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        kept = [e for e in s.effects_on.split(";") if e.strip() and
+                (e.strip().split(":")[0] != want or want == "stiffness_region")]
+        s.effects_on = "; ".join(kept + [spec])
+        obj = s.source_object or context.active_object
+        if obj is not None and hasattr(obj, "unipixie") and hasattr(obj.unipixie, "bake_effects"):
+            others = [e for e in obj.unipixie.bake_effects.split(";") if e.strip() and
+                      (e.strip().split(":")[0] != want or want == "stiffness_region")]
+            obj.unipixie.bake_effects = "; ".join(others + [spec])
+        self.report({"INFO"}, f"added {spec}; run Compare to see the error with it")
+        return {"FINISHED"}
+
+
+class UNIPIXIE_OT_open_diagnosis_report(bpy.types.Operator):
+    """Open the diagnosis report (HTML) in the web browser"""
+
+    bl_idname = "unipixie.open_diagnosis_report"
+    bl_label = "Open report"
+
+    def execute(self, context):
+        s = _settings(context)
+        html = Path(bpy.path.abspath(s.report_path)).with_name("diagnosis.html") if s.report_path else None
+        if html is None or not html.is_file():
+            self.report({"ERROR"}, "no report yet: run 'Diagnose' first")
+            return {"CANCELLED"}
+        bpy.ops.wm.url_open(url=html.as_uri())
+        return {"FINISHED"}
+
+
+class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_unipixie_diagnose"
+    bl_label = "Measurements & diagnosis"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "UniPixie"
+    bl_parent_id = "VIEW3D_PT_unipixie"
+
+    def draw(self, context):
+        layout = self.layout
+        s = _settings(context)
+        row = layout.row(align=True)
+        row.operator("unipixie.load_measurement", icon="IMPORT")
+        row.operator("unipixie.measurement_from_object", icon="EXPORT")
+        if s.measurement_path:
+            layout.label(text=bpy.path.basename(s.measurement_path), icon="FILE")
+        layout.prop(s, "source_object")
+        row = layout.row()
+        row.prop(s, "solver", expand=True)
+        layout.prop(s, "device")
+        layout.prop(s, "effects_on")
+        layout.operator("unipixie.compare_measurement", icon="DRIVER_DISTANCE")
+        box = layout.box()
+        box.prop(s, "out_dir")
+        box.prop(s, "candidates")
+        box.prop(s, "max_additions")
+        box.operator("unipixie.diagnose", icon="VIEWZOOM")
+        if s.summary:
+            layout.label(text=s.summary)
+        row = layout.row(align=True)
+        row.prop(s, "add_effect", text="")
+        row.operator("unipixie.add_effect", icon="ADD")
+        layout.operator("unipixie.open_diagnosis_report", icon="URL")
+
+
+CLASSES = (UniPixieDiagnosisSettings, UNIPIXIE_OT_load_measurement, UNIPIXIE_OT_measurement_from_object,
+           UNIPIXIE_OT_compare_measurement, UNIPIXIE_OT_diagnose, UNIPIXIE_OT_add_effect,
+           UNIPIXIE_OT_open_diagnosis_report, VIEW3D_PT_unipixie_diagnose)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.unipixie_diagnosis = PointerProperty(type=UniPixieDiagnosisSettings)
+
+
+def unregister():
+    if hasattr(bpy.types.Scene, "unipixie_diagnosis"):
+        del bpy.types.Scene.unipixie_diagnosis
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
