@@ -40,7 +40,7 @@ if __package__ in (None, ""):  # run as a file (torchrun training/train.py): imp
         _spec.loader.exec_module(_pkg)
     __package__ = "unipixie.training"
 
-from ..core.errors import UserError  # noqa: E402  (stdlib-only module)
+from ..core.errors import CancelledError, UserError  # noqa: E402  (stdlib-only module)
 
 PRECISIONS = ("auto", "fp32", "bf16")
 LOG_FILE = "train_log.jsonl"
@@ -418,6 +418,11 @@ def train(s: TrainSettings, progress=None) -> dict:
                     dist.barrier()
             if stopping:
                 break
+    except (CancelledError, KeyboardInterrupt):
+        saved = start_step + len(losses)
+        if world == 1 and saved > start_step:  # keep what was trained: resumable with --resume
+            _save(out, objective, optimizer, saved, s, fingerprint, {"cancelled_at": saved})
+        raise
     finally:
         if log is not None:
             log.close()

@@ -99,7 +99,7 @@ class GridFMT(_FMTBase):
         return DecoderContext(self._kv(z), z.mean(dim=1), base, slot_mask)
 
     def forward(self, x, t, alpha, ctx: DecoderContext):
-        """x (B, T, P³, channels) noisy targets; t, alpha (B,) -> (B, T, P³, channels + extra_outputs).
+        """x (B, T, P³, channels) noisy targets; t, alpha (B,) -> (B, T, P³, channels + extra_outputs) float32.
 
         The context may hold one object (batch 1) for B α values of it.  Unoccupied slots of ``x`` are
         ignored and the output there is zero.
@@ -110,10 +110,10 @@ class GridFMT(_FMTBase):
             mask = mask.expand(B, -1, -1, -1)
         inp = torch.cat([x * mask, mask], dim=-1).reshape(B, T, -1)
         h = self.in_proj(inp) + ctx.token_base
-        out = self._run(h, t, alpha, ctx).reshape(B, T, S, -1)
+        out = self._run(h, t, alpha, ctx).reshape(B, T, S, -1).float()  # velocities in float32 (1/(1-t) gain)
         ch = self.channels
-        v = self.to_velocity(out[..., :ch], x, t)
-        return torch.cat([v, out[..., ch:]], dim=-1) * mask
+        v = self.to_velocity(out[..., :ch], x.float(), t)
+        return torch.cat([v, out[..., ch:]], dim=-1) * mask.float()
 
 
 class VectorFMT(_FMTBase):
@@ -135,8 +135,8 @@ class VectorFMT(_FMTBase):
         pad = self.tokens * self.chunk - self.dim
         xp = F.pad(x, (0, pad)).reshape(B, self.tokens, self.chunk)
         h = self.in_proj(xp) + self.pos.to(xp.dtype)[None]
-        out = self._run(h, t, alpha, ctx)
-        return self.to_velocity(out.reshape(B, -1)[:, : self.dim], x, t)
+        out = self._run(h, t, alpha, ctx).float()
+        return self.to_velocity(out.reshape(B, -1)[:, : self.dim], x.float(), t)
 
 
 class HyperNetwork(nn.Module):

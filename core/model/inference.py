@@ -223,7 +223,8 @@ class Predictor:
                                                                   "heads": list(heads)})
 
         def grid_head(head, channels, head_index):
-            ctx = m.grid_context(head, enc)
+            with self._autocast():
+                ctx = m.grid_context(head, enc)
             noise = self._noise(seed, head_index, (N, channels))
             x0 = layout.to_tokens(noise).expand(A, -1, -1, -1)
 
@@ -256,7 +257,8 @@ class Predictor:
             params = norms["lbs_params"].decode(params).astype(np.float32)
             result.lbs = [LBSPrediction(float(a_np[i]), params.copy(), E[i], nu[i]) for i in range(A)]
         if "spring_mass" in heads:
-            ctx = m.spring.context(enc.z)
+            with self._autocast():
+                ctx = m.spring.context(enc.z)
             x0 = self._noise(seed, 2, (1, cfg.spring_dim)).expand(A, -1)
 
             def vel(x, t):

@@ -90,7 +90,12 @@ class TrainBatch:
     seeds: list = field(default_factory=list)
 
     def to(self, device) -> "TrainBatch":
-        kw = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
+        kw = {k: (v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
+        return TrainBatch(**kw)
+
+    def pin_memory(self) -> "TrainBatch":
+        """Page-locked copies (DataLoader(pin_memory=True) calls this) for asynchronous GPU transfer."""
+        kw = {k: (v.pin_memory() if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
         return TrainBatch(**kw)
 
     @property
