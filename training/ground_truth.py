@@ -86,7 +86,7 @@ class GroundTruthSettings:
     spring_anchors: int = 256
     lbs_cubature_points: int = 200
     lbs_mass_samples: int = 2000
-    lbs_max_dt: float = 1.0 / 120.0
+    lbs_max_dt: float = 5.0e-3
     fit_step: float = 0.4
     fit_bound: float = 1.6
     fit_evaluations: int = 5
