@@ -199,3 +199,26 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     assert fr["0"]["all"]["0"] == 1.0 and fr["1"]["all"]["0"] == 1.0
     perfect["log10_E"] = perfect["log10_E"] + 5.0
     assert in_range_fractions(perfect, t)["0"]["E"]["0.25"] == 0.0
+
+
+def test_a_failing_object_is_recorded_and_the_build_goes_on(built, tmp_path, monkeypatch):
+    from unipixie.core.errors import SimulationDiverged
+    from unipixie.training import ground_truth
+
+    settings = D.BuildSettings.from_dict(json.loads((built / "build.json").read_text()))
+
+    def diverge(*args, **kwargs):
+        raise SimulationDiverged("MPM diverged at frame 3 (test)")
+
+    monkeypatch.setattr(ground_truth, "compute", diverge)
+    summary = D.build(tmp_path / "f", 1, settings)
+    assert summary["failed"] == ["000000_potted_plant"]
+    rec = D.read_record(tmp_path / "f", "000000_potted_plant")
+    assert rec["status"] == "failed" and "diverged at frame 3" in rec["error"]
+    assert not (tmp_path / "f" / "samples" / "000000_potted_plant.npz").exists()
+    card = json.loads((tmp_path / "f" / "dataset.json").read_text())
+    assert card["objects"] == 0 and card["failed"] == 1
+    # without --retry-failed a failed object is skipped, with it it is built again
+    assert D.build(tmp_path / "f", 1, settings)["skipped"] == ["000000_potted_plant"]
+    monkeypatch.undo()
+    assert D.build(tmp_path / "f", 1, settings, retry_failed=True)["built"] == ["000000_potted_plant"]

@@ -220,8 +220,7 @@ class Methods:
         out = {}
         s = self.settings
         if self.model is not None:
-            hs = tuple(h for h in heads if h == "mpm" or self._has_head(h))
-            pred = self.model.predict(grid, alphas=alphas, heads=hs, seed=s.seed)
+            pred = self.model.predict(grid, alphas=alphas, heads=heads, seed=s.seed)
             t = time.perf_counter()
             self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed)
             runtime = time.perf_counter() - t
@@ -238,9 +237,6 @@ class Methods:
             arrays["runtime_s"] = np.float64(time.perf_counter() - t)
             out[b.name] = (arrays, fields)
         return out
-
-    def _has_head(self, head: str) -> bool:
-        return True
 
 
 # =========================================================================== simulations for Table 2
