@@ -16,6 +16,30 @@ BIG = 1.0e30
 """Yield strain meaning "never yields"."""
 
 
+@wp.func
+def advance(xi: wp.vec3, vn: wp.vec3, dt: float, ground: float, has_ground: int, mu: float):
+    """Position update x + dt v with the ground plane z = ground as a hard, inelastic constraint.
+
+    An anchor that would cross the plane lands on it; the removed normal velocity is the
+    contact impulse (per unit mass) and Coulomb friction takes up to μ times it from the
+    tangential velocity (sticking when that is enough to stop it).
+    """
+    xn = xi + dt * vn
+    if has_ground != 0:
+        if xn[2] < ground:
+            vz = (ground - xi[2]) / dt
+            if vz > 0.0:  # started below the plane (initial overlap): push out, keep no velocity
+                vz = 0.0
+            jn = vz - vn[2]
+            vt = wp.vec3(vn[0], vn[1], 0.0)
+            st = wp.length(vt)
+            if st > 0.0 and mu > 0.0:
+                vt = vt * wp.max(0.0, 1.0 - mu * jn / st)
+            vn = wp.vec3(vt[0], vt[1], vz)
+            xn = wp.vec3(xi[0] + dt * vt[0], xi[1] + dt * vt[1], ground)
+    return xn, vn
+
+
 @wp.kernel
 def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
@@ -30,7 +54,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
 
     x, v: (E, N) m, m/s at the start of the substep; x_out, v_out: (E, N) at its end.
     rest: (E, H) current rest lengths m (plasticity updates them); kappa: (E, H) N/m;
-    dashpot: (E, H) N·s/m, implicit in v_i (see below); yield_strain: (E, H) (>= BIG: elastic).
+    dashpot: (E, H) N·s/m (explicit, along the spring); yield_strain: (E, H) (>= BIG: elastic).
     inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
     accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
     friction: (E,) Coulomb μ at the ground plane z = ground (when has_ground != 0).
@@ -44,7 +68,6 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     xi = x[e, i]
     vi = v[e, i]
     f = wp.vec3(0.0, 0.0, 0.0)
-    Cd = wp.mat33(0.0)  # Σ c n nᵀ of the dashpots: their pull on v_i is taken implicitly
     for h in range(start[i], start[i + 1]):
         j = nbr[h]
         d = x[e, j] - xi
@@ -61,31 +84,13 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                 elif s < -ey:
                     L = l / (1.0 - ey)
                     rest[e, h] = L
-            c = dashpot[e, h]
-            f = f + (kappa[e, h] * (l - L) + c * wp.dot(v[e, j], n)) * n
-            Cd = Cd + c * wp.outer(n, n)
-    # (I + dt/m Σ c n nᵀ) v_new = v + dt (a + f/m): dashpots implicit in the anchor's own velocity,
-    # explicit in its neighbours' (one Jacobi sweep): stable for any viscosity, rigid motion exact
-    vn = wp.inverse(wp.identity(n=3, dtype=float) + (dt * im) * Cd) * (vi + dt * (accel[e] + im * f))
+            f = f + (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
+    vn = vi + dt * (accel[e] + im * f)
     # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
     vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
-    xn = xi + dt * vn
-    if has_ground != 0:
-        if xn[2] < ground:
-            # inelastic contact: land exactly on the plane; the normal velocity change is the impulse
-            vz = (ground - xi[2]) / dt
-            if vz > 0.0:  # started below the plane (initial overlap): push out, keep no velocity
-                vz = 0.0
-            jn = vz - vn[2]
-            vt = wp.vec3(vn[0], vn[1], 0.0)
-            st = wp.length(vt)
-            mu = friction[e]
-            if st > 0.0 and mu > 0.0:
-                vt = vt * wp.max(0.0, 1.0 - mu * jn / st)
-            vn = wp.vec3(vt[0], vt[1], vz)
-            xn = wp.vec3(xi[0] + dt * vt[0], xi[1] + dt * vt[1], ground)
+    xn, vf = advance(xi, vn, dt, ground, has_ground, friction[e])
     x_out[e, i] = xn
-    v_out[e, i] = vn
+    v_out[e, i] = vf
 
 
 @wp.kernel

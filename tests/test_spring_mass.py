@@ -1,0 +1,321 @@
+"""Spring-mass solver against analytic answers (CPU, small networks; each tolerance is stated in its test)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from unipixie.core.errors import CancelledError, UserError
+from unipixie.core.progress import Progress
+from unipixie.core.types import GridGeometry, MaterialField
+from unipixie.solvers import effects as fx
+from unipixie.solvers import spring_mass as sm
+from unipixie.solvers.api import simulate
+from unipixie.solvers.body import Body
+from unipixie.solvers.material_sampling import HomogeneousMaterial
+from unipixie.solvers.scenario import Scenario
+
+G = 9.81
+JELLY = HomogeneousMaterial(1e5, 0.3, 1000.0)
+
+
+def box_body(extents, centre, tracked=None):
+    mesh = trimesh.creation.box(extents=extents)
+    mesh.apply_translation(centre)
+    return Body.from_mesh(mesh, tracked_points=tracked)
+
+
+def zero_crossing_period(t, signal):
+    """Period from the mean spacing of the crossings of the signal's mean."""
+    x = np.asarray(signal, np.float64) - np.mean(signal)
+    neg = np.signbit(x)
+    i = np.where(neg[1:] != neg[:-1])[0]
+    tz = t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
+    assert len(tz) >= 3, f"only {len(tz)} zero crossings"
+    return 2.0 * float(np.mean(np.diff(tz)))
+
+
+def whole_period_mean(signal):
+    """Mean of an oscillating signal over the whole periods between its first and last upward mean crossing."""
+    x = np.asarray(signal, np.float64)
+    up = np.where((x[:-1] < x.mean()) & (x[1:] >= x.mean()))[0]
+    assert len(up) >= 2, "fewer than one whole period"
+    return float(x[up[0]:up[-1]].mean())
+
+
+# ------------------------------------------------------------------------------------- constants
+def test_parameter_vector_constants():
+    assert sm.DEFAULT_ANCHORS == 2048 and sm.SPRING_PARAM_COUNT == 2049
+    k, eta = sm.split_parameter_vector(np.arange(1, 2050, dtype=float))
+    assert k.shape == (2048,) and eta == 2049.0
+
+
+def test_softness_weights_follow_rank():
+    """Ranks below fixed_springs keep 1; beyond, w = clip(2 − b^t, 0, 1) with b = e^softplus(η) falls with rank
+    and with η; η = −inf leaves every spring at full strength."""
+    ranks = np.arange(32)
+    w0 = sm.softness_weights(ranks, 32, 16, 0.0)
+    assert np.all(w0[:16] == 1.0)
+    assert np.all(np.diff(w0[16:]) < 0)
+    # t = (r - 16)/16 and b = 2 for η = 0: w(24) = 2 - 2**0.5
+    assert w0[24] == pytest.approx(2 - 2 ** 0.5, abs=1e-12)
+    assert np.all(sm.softness_weights(ranks, 32, 16, 2.0)[17:] < w0[17:])
+    assert np.all(sm.softness_weights(ranks, 32, 16, -math.inf) == 1.0)
+
+
+# ------------------------------------------------------------------------------------- physics
+def test_free_fall_within_one_percent():
+    """No ground: the tracked points' centre falls g t²/2 (1 s) within 1 % (semi-implicit Euler lags by g t dt/2)."""
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 2.0))
+    t = np.linspace(0, 1, 11)
+    traj = sm.prepare(body, JELLY, Scenario(ground_height=None), t, settings={"anchors": 120}).run([])
+    fall = 2.0 - traj.positions[:, :, 2].astype(np.float64).mean(1)
+    assert abs(fall[-1] / (0.5 * G) - 1) < 0.01, fall[-1]
+    np.testing.assert_allclose(fall[1:], 0.5 * G * t[1:] ** 2, rtol=0.01)
+
+
+def test_two_anchor_oscillator_period_matches_spring_constant():
+    """One spring of constant κ = k/L between a clamped and a free anchor of mass m, pulled along the spring by
+    gravity: it oscillates with T = 2π sqrt(m/κ) (within 5 %) about the static stretch m g / κ (within 5 %)."""
+    L, vol, rho, k = 0.1, 1e-4, 1000.0, 400.0
+    body = Body(points=[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0 - L]], point_volume=vol)
+    sc = Scenario(ground_height=None, pinned_box=[[-1, -1, 0.99], [1, 1, 1.01]])
+    t = np.linspace(0, 0.5, 501)
+    sim = sm.prepare_with_parameters(body, np.array([k, k]), 0.0, HomogeneousMaterial(1e5, 0.3, rho), sc, t,
+                                     settings={"anchors": 2, "neighbours": 1})
+    traj = sim.run([], particle_states=True)
+    m = rho * vol
+    kappa = k / L
+    z = traj.particle_positions[:, 1, 2].astype(np.float64)
+    assert abs(zero_crossing_period(t, z) / (2 * np.pi * np.sqrt(m / kappa)) - 1) < 0.05
+    assert abs(((1.0 - L) - whole_period_mean(z)) / (m * G / kappa) - 1) < 0.05
+
+
+def test_bar_axial_wave_speed_and_static_stretch_match_continuum():
+    """The (E, ρ) → (m, k) mapping: a bar (0.4 × 0.06 × 0.06 m, E = 100 kPa, 800 anchors) clamped at its top
+    and hanging under gravity oscillates with the continuum's first axial period 4 L / sqrt(E/ρ) and
+    stretches by ρ g L² / (2E) on average — both within 10 % (the calibration c_E was measured on this
+    geometry: static stretch 0.87 / 0.92 / 1.01 / 1.02 of the continuum at 300 / 800 / 1000 / 2048 anchors)."""
+    L, a, clamp, E, rho = 0.4, 0.06, 0.03, 1e5, 1000.0
+    body = box_body((a, a, L + clamp), (0, 0, -(L + clamp) / 2 + clamp), tracked=np.array([[0.0, 0.0, -L]]))
+    sc = Scenario(ground_height=None, pinned_box=[[-1, -1, 0], [1, 1, 1]])
+    t = np.linspace(0, 0.5, 501)
+    traj = sm.prepare(body, HomogeneousMaterial(E, 0.25, rho), sc, t, settings={"anchors": 800}).run([])
+    d = -(traj.positions[:, 0, 2].astype(np.float64) + L)
+    assert abs(zero_crossing_period(t[100:], d[100:]) / (4 * L / np.sqrt(E / rho)) - 1) < 0.10
+    assert abs(whole_period_mean(d[100:]) / (rho * G * L ** 2 / (2 * E)) - 1) < 0.10
+
+
+def test_linear_drag_decays_exponentially():
+    """No gravity, v0 = 1 m/s, drag c = 2/s: x(t) = v0 (1 − e^{−ct}) / c within 3 %."""
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 1.0))
+    t = np.linspace(0, 1, 11)
+    sc = Scenario(gravity=[0, 0, 0], ground_height=None, initial_velocity=[1.0, 0, 0])
+    traj = sm.prepare(body, JELLY, sc, t, settings={"anchors": 100}).run([fx.make("linear_drag", c=2.0)])
+    x = traj.positions[:, :, 0].astype(np.float64).mean(1)
+    expected = (1 - np.exp(-2.0 * t)) / 2.0
+    np.testing.assert_allclose(x[1:], expected[1:], rtol=0.03)
+
+
+def test_energy_drift_without_effects_under_two_percent():
+    """A spinning, translating block without gravity, ground or effects stretches and vibrates; over 2 s its
+    kinetic + elastic energy stays within 2 % of the initial value (symplectic Euler)."""
+    body = box_body((0.2, 0.1, 0.1), (0, 0, 1.0))
+    sc = Scenario(gravity=[0, 0, 0], ground_height=None, initial_velocity=[0.3, 0, 0],
+                  initial_angular_velocity=[0, 0, 8.0])
+    t = np.linspace(0, 2, 41)
+    sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 150})
+    traj = sim.run([], particle_states=True)
+    energies = np.array([sim.energy(traj.particle_positions[f], traj.particle_attributes["velocity"][f])["total"]
+                         for f in range(len(t))])
+    elastic_peak = max(sim.energy(traj.particle_positions[f], traj.particle_attributes["velocity"][f])["elastic"]
+                       for f in range(len(t)))
+    assert elastic_peak > 1e-3 * energies[0]  # it does deform
+    assert np.max(np.abs(energies / energies[0] - 1)) < 0.02
+
+
+def test_momentum_and_rigid_motion_without_forces():
+    """Without forces the centre of mass moves uniformly (momentum conserved to 1e-4 relative)."""
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 1.0))
+    sc = Scenario(gravity=[0, 0, 0], ground_height=None, initial_velocity=[0.5, 0, 0],
+                  initial_angular_velocity=[3.0, 0, 0])
+    t = np.linspace(0, 0.5, 6)
+    sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 100})
+    traj = sim.run([], particle_states=True)
+    m = sim.network.mass
+    p = (m[:, None] * traj.particle_attributes["velocity"].astype(np.float64)).sum(1)
+    np.testing.assert_allclose(p[:, 0], 0.5 * m.sum(), rtol=1e-4)
+    np.testing.assert_allclose(p[:, 1:], 0.0, atol=1e-4 * 0.5 * m.sum())
+
+
+# ------------------------------------------------------------------------------------- effects
+@pytest.fixture(scope="module")
+def falling():
+    """A block falling without ground, run as one batch: base, linear drag, quadratic drag, wind."""
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 1.0))
+    t = np.linspace(0, 0.5, 11)
+    sim = sm.prepare(body, JELLY, Scenario(ground_height=None), t, settings={"anchors": 100})
+    effs = [[], [fx.make("linear_drag", c=1.0)], [fx.make("quadratic_drag", k=1.0)],
+            [fx.make("wind", acceleration=[2.0, 0, 0])]]
+    trajs = sim.run_batch(effs)
+    out = {name: tr.positions.astype(np.float64).mean(1) for name, tr in
+           zip(["base", "linear", "quadratic", "wind"], trajs)}
+    # dashpots are explicit: the strongly damped environment runs alone (it needs shorter substeps)
+    out["damping"] = sim.run([fx.make("material_damping", eta=500.0)]).positions.astype(np.float64).mean(1)
+    return t, out
+
+
+def test_effect_linear_drag_slows_the_fall(falling):
+    t, c = falling
+    fall = 1.0 - c["linear"][-1, 2]
+    # falling under drag c = 1/s: z drop = g/c (t − (1 − e^{−ct})/c), within 3 %
+    assert abs(fall / (G * (t[-1] - (1 - np.exp(-t[-1])))) - 1) < 0.03
+    assert fall < 1.0 - c["base"][-1, 2]
+
+
+def test_effect_quadratic_drag_slows_the_fall(falling):
+    t, c = falling
+    # v(t) = v_T tanh(g t / v_T), v_T = sqrt(g/k); drop = v_T²/g · ln cosh(g t / v_T), within 3 %
+    vt = np.sqrt(G / 1.0)
+    assert abs((1.0 - c["quadratic"][-1, 2]) / (vt ** 2 / G * np.log(np.cosh(G * t[-1] / vt))) - 1) < 0.03
+
+
+def test_effect_wind_pushes_downwind(falling):
+    t, c = falling
+    assert abs(c["wind"][-1, 0] / (0.5 * 2.0 * t[-1] ** 2) - 1) < 0.01
+    assert abs(c["base"][-1, 0]) < 1e-4
+
+
+def test_effect_material_damping_leaves_free_fall_alone(falling):
+    """Dashpots leave rigid motion alone: the damped block falls g t²/2 like the undamped one (within the
+    integrator's lag g t dt / 2, < 0.3 % here)."""
+    t, c = falling
+    exact = 0.5 * G * t[1:] ** 2
+    np.testing.assert_allclose(1.0 - c["damping"][1:, 2], exact, rtol=3e-3)
+    np.testing.assert_allclose(1.0 - c["base"][1:, 2], exact, rtol=3e-3)
+
+
+@pytest.fixture(scope="module")
+def cantilever():
+    """A clamped cantilever (0.2 × 0.04 × 0.04 m, E = 1 MPa, 100 anchors) released under gravity: one batch
+    of base / plasticity / stiffer root, and a separate damped run (explicit dashpots need shorter substeps)."""
+    L, h, clamp = 0.2, 0.04, 0.02
+    body = box_body((L + clamp, h, h), ((L + clamp) / 2 - clamp, 0, 0.5), tracked=np.array([[L, 0, 0.5]]))
+    sc = Scenario(ground_height=None, pinned_box=[[-1, -1, -1], [0, 1, 2]])
+    t = np.linspace(0, 0.4, 41)
+    sim = sm.prepare(body, HomogeneousMaterial(1e6, 0.3, 1000.0), sc, t, settings={"anchors": 100})
+    names = ["base", "plastic", "stiffer_root"]
+    effs = [[], [fx.make("plasticity", yield_stress=5e3)],
+            [fx.make("stiffness_region", factor=4.0, region={"box": [[-1, -1, -1], [L / 2, 1, 2]]})]]
+    trajs = sim.run_batch(effs) + [sim.run([fx.make("material_damping", eta=1e3)])]
+    return t, {n: 0.5 - tr.positions[:, 0, 2].astype(np.float64) for n, tr in zip(names + ["damping"], trajs)}
+
+
+def test_effect_material_damping_damps_the_oscillation(cantilever):
+    """The tip's swing about its mean over the second half shrinks by ≥ 25 % with η = 1 kPa·s (Kelvin–Voigt
+    damping ratio of the first bending mode ≈ 2.5 η ω / (2E) ≈ 0.05 per period: ~40 % after 0.2 s)."""
+    _, sag = cantilever
+    half = len(sag["base"]) // 2
+    assert np.std(sag["damping"][half:]) < 0.75 * np.std(sag["base"][half:])
+
+
+def test_effect_ground_friction_stopping_distance():
+    """A block sliding at 1 m/s on the ground stops after v²/(2 μ g) with μ = 0.3 (within 10 %); frictionless
+    it keeps going."""
+    body = box_body((0.1, 0.1, 0.05), (0, 0, 0.025))
+    t = np.linspace(0, 0.4, 21)
+    sim = sm.prepare(body, JELLY, Scenario(initial_velocity=[1.0, 0, 0]), t, settings={"anchors": 100})
+    base, rough = sim.run_batch([[], [fx.make("ground_friction", mu=0.3)]])
+    x_base = base.positions[:, :, 0].astype(np.float64).mean(1)
+    x_rough = rough.positions[:, :, 0].astype(np.float64).mean(1)
+    assert abs(x_rough[-1] / (1.0 / (2 * 0.3 * G)) - 1) < 0.10
+    assert abs(x_base[-1] / 0.4 - 1) < 0.01
+
+
+# ------------------------------------------------------------------------------------- API
+def test_batch_equals_single_runs_and_ground_holds():
+    """run_batch gives the same trajectories as separate runs; nothing goes below the ground."""
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 0.1))
+    t = np.linspace(0, 0.3, 7)
+    sim = sm.prepare(body, JELLY, Scenario(), t, settings={"anchors": 80})
+    drag = fx.make("linear_drag", c=0.5)
+    batch = sim.run_batch([[], [drag]])
+    np.testing.assert_allclose(batch[1].positions, sim.run([drag]).positions, atol=1e-6)
+    np.testing.assert_allclose(batch[0].positions, sim.run([]).positions, atol=1e-6)
+    states = sim.run([], particle_states=True)
+    assert states.particle_positions[:, :, 2].min() >= -1e-6
+    assert states.solver == "spring_mass" and states.positions.shape == (7, len(body.tracked_points), 3)
+
+
+def test_explicit_parameters_match_the_material_mapping():
+    """Running with (k, η) from stiffness_from_youngs_modulus reproduces the material-driven run; a 4× stiffer
+    k vector gives 4× the spring constants."""
+    body = box_body((0.2, 0.05, 0.05), (0.08, 0, 0.5), tracked=np.array([[0.18, 0, 0.5]]))
+    sc = Scenario(ground_height=None, pinned_box=[[-1, -1, -1], [0, 1, 2]])
+    t = np.linspace(0, 0.2, 5)
+    sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 120})
+    k = sim.stiffness
+    assert k.shape == (sim.network.count,) and np.all(k > 0)
+    np.testing.assert_allclose(sm.youngs_modulus_from_stiffness(sim.network, k, sim.settings), 1e5, rtol=1e-9)
+    np.testing.assert_allclose(sm.anchor_positions(body, 120, sc), sim.network.anchors)
+    sim2 = sm.prepare_with_parameters(body, k, sm.DEFAULT_SOFTNESS, JELLY, sc, t, settings={"anchors": 120})
+    np.testing.assert_allclose(sim2.run([]).positions, sim.run([]).positions, atol=1e-6)
+    sim4 = sm.prepare_with_parameters(body, 4 * k, sm.DEFAULT_SOFTNESS, JELLY, sc, t, settings={"anchors": 120})
+    np.testing.assert_allclose(sim4.spring_kappa, 4 * sim.spring_kappa, rtol=1e-9)
+
+
+def test_material_field_drives_the_network():
+    """A voxel material field (stiff left half, soft right half) gives the anchors on each side their own E,
+    and the masses sum to ρ V."""
+    geo = GridGeometry(8, origin=[-0.1, -0.1, 0.0], voxel_size=0.025)
+    occ = np.zeros((8, 8, 8), bool)
+    occ[:, :, :8] = True
+    K = int(occ.sum())
+    idx = np.argwhere(occ)
+    E = np.where(idx[:, 0] < 4, 1e6, 1e4)
+    field = MaterialField(geo, occ, E, np.full(K, 0.3), np.full(K, 800.0), np.zeros(K))
+    body = box_body((0.2, 0.2, 0.2), (0, 0, 0.1))
+    sim = sm.prepare(body, field, Scenario(), [0.0, 0.01], settings={"anchors": 150})
+    left = sim.network.anchors[:, 0] < -0.01
+    right = sim.network.anchors[:, 0] > 0.01
+    assert np.allclose(sim.youngs_modulus[left], 1e6) and np.allclose(sim.youngs_modulus[right], 1e4)
+    assert sim.stiffness[left].mean() > 30 * sim.stiffness[right].mean()
+    assert sim.network.mass.sum() == pytest.approx(800.0 * 0.2 ** 3, rel=1e-6)
+
+
+def test_simulate_dispatches_and_cancels():
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 0.2))
+    traj = simulate("spring", body, JELLY, Scenario(), [0.0, 0.05], settings={"anchors": 60})
+    assert traj.solver == "spring_mass"
+    sim = sm.prepare(body, JELLY, Scenario(), np.linspace(0, 0.1, 6), settings={"anchors": 60})
+    prog = Progress(show_bar=False)
+    prog.cancel()
+    with pytest.raises(CancelledError):
+        sim.run([], progress=prog)
+
+
+def test_bad_input_gets_clear_errors():
+    body = box_body((0.1, 0.1, 0.1), (0, 0, 0.2))
+    t = [0.0, 0.1]
+    with pytest.raises(UserError, match="explicit stiffness vector has 3 entries"):
+        sm.prepare(body, JELLY, Scenario(), t, settings={"anchors": 50, "stiffness": np.ones(3)})
+    with pytest.raises(UserError, match="substeps per frame"):
+        sm.prepare(body, JELLY, Scenario(), t, settings={"anchors": 50, "max_substeps_per_frame": 10}).run(
+            [fx.make("material_damping", eta=1e5)])
+    with pytest.raises(UserError, match="finite and positive"):
+        sm.prepare(body, JELLY, Scenario(), t, settings={"stiffness": [1.0, -1.0]})
+    with pytest.raises(UserError, match="unknown spring-mass setting"):
+        sm.prepare(body, JELLY, Scenario(), t, settings={"anchor": 10})
+    with pytest.raises(UserError, match="safety"):
+        sm.SpringMassSettings(safety=2.0)
+    with pytest.raises(UserError, match="strictly increasing"):
+        sm.prepare(body, JELLY, Scenario(), [0.0, 0.0], settings={"anchors": 50})
+    with pytest.raises(UserError, match="expected a Body"):
+        sm.prepare("cube", JELLY, Scenario(), t)
+    with pytest.raises(UserError, match="background"):
+        sm.prepare(body, HomogeneousMaterial(1e5, 0.3, 1000.0, "background"), Scenario(), t, settings={"anchors": 50})
+    with pytest.raises(UserError, match="N_a stiffnesses"):
+        sm.split_parameter_vector([1.0])
