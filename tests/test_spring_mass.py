@@ -190,12 +190,14 @@ def test_effect_wind_pushes_downwind(falling):
 
 
 def test_effect_material_damping_leaves_free_fall_alone(falling):
-    """Dashpots leave rigid motion alone: the damped block falls g t²/2 like the undamped one (within the
-    integrator's lag g t dt / 2, < 0.3 % here)."""
+    """Dashpots leave rigid motion alone: the damped block falls g t²/2 like the undamped one, within 1 %
+    for t >= 0.2 s (the integrator's lag g t dt / 2 is relative error dt / t)."""
     t, c = falling
-    exact = 0.5 * G * t[1:] ** 2
-    np.testing.assert_allclose(1.0 - c["damping"][1:, 2], exact, rtol=3e-3)
-    np.testing.assert_allclose(1.0 - c["base"][1:, 2], exact, rtol=3e-3)
+    late = t >= 0.2
+    exact = 0.5 * G * t[late] ** 2
+    np.testing.assert_allclose(1.0 - c["damping"][late, 2], exact, rtol=0.01)
+    np.testing.assert_allclose(1.0 - c["base"][late, 2], exact, rtol=0.01)
+    np.testing.assert_allclose(c["damping"][:, :2], 0.0, atol=1e-5)
 
 
 @pytest.fixture(scope="module")
