@@ -42,6 +42,9 @@ def add_arguments(p):
                                                        "(no Blender needed; the render is not timed)")
     p.add_argument("--save-views", metavar="NPZ", help="save the rendered views and mesh for --views-from")
     p.add_argument("--offline", action="store_true", help="also time the offline extractor (offline-random-vit-w32)")
+    p.add_argument("--threads", type=_common.positive_int, default=None,
+                   help="torch CPU threads (default: torch's choice; on an oversubscribed shared machine 1 can be "
+                        "much faster)")
 
 
 def _device_name(device: str) -> str:
@@ -99,6 +102,9 @@ def run(args) -> list[dict]:
     from ..normalise import Normalisation, unit_cube_grid
 
     device = args.device if args.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    threads = f", {torch.get_num_threads()} torch threads" if device == "cpu" else ""
     stage_times: dict[str, list[float]] = {k: [] for k in ("render", "occupancy", "features", "lift")}
     if args.views_from:
         views, verts_n, faces = load_bench_views(args.views_from)
@@ -160,7 +166,7 @@ def run(args) -> list[dict]:
             if args.save_views and render_once is not None and ext is extractors[0]:
                 path = save_bench_views(args.save_views, views, verts_n, faces)
                 print(f"saved views for --views-from: {path} ({path.stat().st_size / 1e6:.1f} MB)")
-            case = f"{ext.name}, {subject}, {int(grid.occupancy.sum())} voxels, D = {grid.dim}"
+            case = f"{ext.name}, {subject}, {int(grid.occupancy.sum())} voxels, D = {grid.dim}{threads}"
             dev = _device_name(device)
             load_after = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
             note = (f"host load average {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} CPU cores "
