@@ -67,6 +67,10 @@ _SEPARATE_STARTS = ("material_damping",)
 """Effects whose start grid spans decades of the stable time step: each start runs in its own launch."""
 DEFAULT_REGION_CLUSTERS = 6
 BASE_SCALE_BOUNDS = (0.05, 20.0)
+MAX_DAMPING_RATIO = 0.5
+"""Largest Kelvin–Voigt viscosity tried, as a damping ratio of the solid's first axial mode (ω ≈ π c / L).
+Explicit solvers need a time step ∝ 1/η, so the cost of a simulation grows with η; "moderate"
+damping of compact solids lies well below this."""
 """Range of the E/ρ scale the base fit may use."""
 
 Log = Callable[[str], None]
@@ -420,6 +424,8 @@ class _Scales:
     size: float
     density: float
     extent: float
+    strain: float = 0.01
+    """Largest strain of the model as given (99th percentile over edges and instants), dimensionless."""
 
 
 def _problem_scales(measurement, material) -> _Scales:
@@ -467,12 +473,16 @@ def _plan(name: str, sc: _Scales, E_now: float) -> _Plan:
         # critical damping of the fundamental mode: η ≈ 2E/ω₁ with ω₁ ≈ π c / L, c = sqrt(E/ρ)
         eta_crit = 2.0 * E_now * sc.extent / (math.pi * math.sqrt(E_now / sc.density))
         return _Plan([{"eta": eta_crit * x} for x in (0.01, 0.05, 0.25)], {"eta": eta_crit * 0.1},
-                     {"eta": (0.0, eta_crit)})
+                     {"eta": (0.0, eta_crit * MAX_DAMPING_RATIO)})
     if name == "ground_friction":
         return _Plan([{"mu": x} for x in (0.05, 0.15, 0.3, 0.6, 1.0)], {"mu": 0.3})
     if name == "plasticity":
-        return _Plan([{"yield_stress": E_now * x} for x in (3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1)],
-                     {"yield_stress": E_now * 1e-2}, {"yield_stress": (E_now * 1e-5, E_now * 10.0)})
+        # the response to a yield stress is sharp (nothing above the largest stress, a lot just below it):
+        # a fine ladder (ratio 1.35) from 1.5 × down to 1/20 of the largest elastic stress of the model
+        top = E_now * max(sc.strain, 1e-4)
+        ladder = top * 1.5 / 1.35 ** np.arange(11)
+        return _Plan([{"yield_stress": float(y)} for y in ladder], {"yield_stress": top * 0.3},
+                     {"yield_stress": (top * 1e-3, top * 10.0)})
     if name == "wind":
         return _Plan([{"acceleration": np.zeros(3)}], {"acceleration": max(0.1 * sc.gravity, 0.1)})
     if name == "stiffness_region":
@@ -493,6 +503,27 @@ def _plan(name: str, sc: _Scales, E_now: float) -> _Plan:
         starts = [{p.name: v} for v in vals]
         break
     return _Plan(starts or [{}], {})
+
+
+def _max_strain(rest: np.ndarray, positions: np.ndarray, body) -> float:
+    """99th percentile over edges and instants of |l/l0 − 1| for the surface edges (or 6-nearest-neighbour
+    edges) of the tracked points in simulated ``positions`` (T, N, 3)."""
+    edges = None
+    mesh = getattr(body, "mesh", None)
+    if mesh is not None and len(mesh.vertices) == len(rest) and np.allclose(mesh.vertices, rest):
+        edges = np.asarray(mesh.edges_unique, dtype=np.int64)
+    if edges is None or len(edges) == 0:
+        from scipy.spatial import cKDTree
+
+        k = min(7, len(rest))
+        _, nn = cKDTree(rest).query(rest, k=k)
+        edges = np.stack([np.repeat(np.arange(len(rest)), k - 1), nn[:, 1:].reshape(-1)], axis=1)
+    l0 = np.linalg.norm(rest[edges[:, 1]] - rest[edges[:, 0]], axis=1)
+    ok = l0 > 1e-12
+    d = positions[:, edges[ok, 1]] - positions[:, edges[ok, 0]]
+    strain = np.abs(np.linalg.norm(d, axis=-1) / l0[ok] - 1.0)
+    strain = strain[np.isfinite(strain)]
+    return float(np.percentile(strain, 99)) if strain.size else 0.01
 
 
 def _null_kind(cls: type, p: fx.Param) -> str:
@@ -612,6 +643,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
 
     # ---- 1. baseline: the model as given ------------------------------------------------------
     base_pos = P.positions_for(1.0, [])
+    sc.strain = _max_strain(np.asarray(measurement.rest), base_pos, body)
     baseline = compare(base_pos, measurement.positions, measurement.times, measurement.rest,
                        region_count=6)
     sse_baseline = float(np.sum(P.residual_of(base_pos) ** 2))
