@@ -129,48 +129,66 @@ class torch_threads:
         return False
 
 
-def _refine(theta0: np.ndarray, x_hat: np.ndarray, volumes: np.ndarray, E_rel: np.ndarray, nu: np.ndarray,
-            iterations: int, transform_scale: float, orthogonality_weight: float, seed: int,
-            progress: Progress | None) -> tuple[np.ndarray, list]:
-    """Stage 2: Simplicits loss minimised with Adam from ``theta0`` (torch, CPU)."""
-    import torch
+class _SimplicitsLoss:
+    """Simplicits' loss terms for read-out rows θ (H, K): elastic energy under given handle transforms and
+    the orthogonality residual (torch, float64)."""
 
-    phi_np, dphi_np = basis(x_hat, theta0.shape[1] - 1)
-    dt = torch.float64
-    phi = torch.tensor(phi_np, dtype=dt)
-    dphi = torch.tensor(dphi_np, dtype=dt)
-    xh = torch.tensor(np.concatenate([x_hat, np.ones((len(x_hat), 1))], axis=1), dtype=dt)  # (N, 4)
-    Vn = torch.tensor(volumes / volumes.sum(), dtype=dt)
-    mu = torch.tensor(E_rel / (2 * (1 + nu)), dtype=dt)
-    lam = torch.tensor(E_rel * nu / ((1 + nu) * (1 - 2 * nu)), dtype=dt)
-    theta = torch.tensor(theta0, dtype=dt, requires_grad=True)
-    H = theta0.shape[0]
-    eye4x3 = torch.zeros(4, 3, dtype=dt)
-    eye4x3[:3, :3] = torch.eye(3, dtype=dt)
-    gen = torch.Generator().manual_seed(seed)
-    opt = torch.optim.Adam([theta], lr=2e-3)
-    history = []
-    samples = 8
-    elastic_scale = None
-    for it in range(iterations):
-        w = phi @ theta.T                                            # (N, H)
-        gw = torch.einsum("nkd,hk->nhd", dphi, theta)                # (N, H, 3)
-        ones = torch.ones(len(w), 1, dtype=dt)
-        w_all = torch.cat([w, ones], dim=1)                          # constant handle last
-        gw_all = torch.cat([gw, torch.zeros(len(w), 1, 3, dtype=dt)], dim=1)
+    def __init__(self, x_hat: np.ndarray, volumes: np.ndarray, E_rel: np.ndarray, nu: np.ndarray, hidden: int):
+        import torch
+
+        self.torch = torch
+        dt = self.dtype = torch.float64
+        phi_np, dphi_np = basis(x_hat, hidden)
+        self.phi = torch.tensor(phi_np, dtype=dt)
+        self.dphi = torch.tensor(dphi_np, dtype=dt)
+        self.xh = torch.tensor(np.concatenate([x_hat, np.ones((len(x_hat), 1))], axis=1), dtype=dt)  # (N, 4)
+        self.Vn = torch.tensor(volumes / volumes.sum(), dtype=dt)
+        self.mu = torch.tensor(E_rel / (2 * (1 + nu)), dtype=dt)
+        self.lam = torch.tensor(E_rel * nu / ((1 + nu) * (1 - 2 * nu)), dtype=dt)
+        self.eye4x3 = torch.zeros(4, 3, dtype=dt)
+        self.eye4x3[:3, :3] = torch.eye(3, dtype=dt)
+
+    def __call__(self, theta, Z):
+        """theta (H, K) tensor, Z (S, H+1, 3, 4) transforms -> (mean elastic energy per unit volume, orthogonality)."""
+        torch = self.torch
+        dt = self.dtype
+        H = theta.shape[0]
+        n = len(self.phi)
+        w = self.phi @ theta.T                                             # (N, H)
+        gw = torch.einsum("nkd,hk->nhd", self.dphi, theta)                  # (N, H, 3)
+        w_all = torch.cat([w, torch.ones(n, 1, dtype=dt)], dim=1)           # constant handle last
+        gw_all = torch.cat([gw, torch.zeros(n, 1, 3, dtype=dt)], dim=1)
         # G_h = [x̂;1] ∇w_hᵀ + w_h [I;0]   (N, H+1, 4, 3)
-        G = xh[:, None, :, None] * gw_all[:, :, None, :] + w_all[:, :, None, None] * eye4x3
-        Z = torch.randn(samples, H + 1, 3, 4, generator=gen, dtype=dt) * transform_scale
+        G = self.xh[:, None, :, None] * gw_all[:, :, None, :] + w_all[:, :, None, None] * self.eye4x3
         F = torch.eye(3, dtype=dt) + torch.einsum("shar,nhrb->snab", Z, G)
         J = torch.linalg.det(F)
         Ic = torch.sum(F * F, dim=(-1, -2))
+        mu, lam = self.mu, self.lam
         a = 1.0 + mu / lam.clamp_min(1e-12)
+        # stable neo-Hookean (Smith et al. 2018), zero at rest, defined for inverted F
         psi = 0.5 * mu * (Ic - 3.0) - mu * (J - 1.0) + 0.5 * lam * (J - a) ** 2 - 0.5 * lam * (a - 1.0) ** 2
-        elastic = torch.mean(torch.sum(psi * Vn, dim=1)) / transform_scale ** 2
-        Wt = w * torch.sqrt(Vn)[:, None]
-        gram = Wt.T @ Wt
-        mean_w = Vn @ w
-        orth = torch.sum((gram - torch.eye(H, dtype=dt)) ** 2) + torch.sum(mean_w ** 2)
+        elastic = torch.mean(torch.sum(psi * self.Vn, dim=1))
+        Wt = w * torch.sqrt(self.Vn)[:, None]
+        orth = torch.sum((Wt.T @ Wt - torch.eye(H, dtype=dt)) ** 2) + torch.sum((self.Vn @ w) ** 2)
+        return elastic, orth
+
+
+def _refine(theta0: np.ndarray, x_hat: np.ndarray, volumes: np.ndarray, E_rel: np.ndarray, nu: np.ndarray,
+            iterations: int, transform_scale: float, orthogonality_weight: float, seed: int,
+            progress: Progress | None) -> tuple[np.ndarray, list]:
+    """Stage 2: Simplicits loss minimised with Adam from ``theta0`` (torch, CPU); 8 random transforms a step."""
+    import torch
+
+    loss_fn = _SimplicitsLoss(x_hat, volumes, E_rel, nu, theta0.shape[1] - 1)
+    theta = torch.tensor(theta0, dtype=torch.float64, requires_grad=True)
+    H = theta0.shape[0]
+    gen = torch.Generator().manual_seed(seed)
+    opt = torch.optim.Adam([theta], lr=2e-3)
+    history = []
+    elastic_scale = None
+    for it in range(iterations):
+        Z = torch.randn(8, H + 1, 3, 4, generator=gen, dtype=torch.float64) * transform_scale
+        elastic, orth = loss_fn(theta, Z)
         if elastic_scale is None:  # the loss is relative to the starting energy (scale-free weighting)
             elastic_scale = float(elastic.detach())
         loss = elastic / elastic_scale + orthogonality_weight * orth
@@ -178,9 +196,37 @@ def _refine(theta0: np.ndarray, x_hat: np.ndarray, volumes: np.ndarray, E_rel: n
         loss.backward()
         opt.step()
         history.append((float(elastic.detach()) / elastic_scale, float(orth.detach())))
-        if progress is not None and (it % 10 == 0 or it == iterations - 1):
-            progress.step(10.0 if it % 10 == 0 and it else 0.0, f"skinning fit {it + 1}/{iterations}")
+        if progress is not None and it % 10 == 0:
+            progress.set_status(f"skinning fit {it + 1}/{iterations}")
     return theta.detach().numpy(), history
+
+
+def simplicits_loss(params: np.ndarray, points: np.ndarray, volumes: np.ndarray | None = None,
+                    youngs_modulus: np.ndarray | None = None, poisson_ratio: np.ndarray | None = None,
+                    bounds: np.ndarray | None = None, handles: int = skinning.DEFAULT_HANDLES, samples: int = 64,
+                    transform_scale: float = DEFAULT_TRANSFORM_SCALE, seed: int = 0) -> tuple[float, float]:
+    """Simplicits' loss terms of given skinning parameters on a fixed, seeded set of random transforms.
+
+    Returns (mean elastic energy density / transform_scale² — E relative to its mean, orthogonality
+    residual); lower is better for both.  Used to compare bases (e.g. before/after refinement).
+    """
+    import torch
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    n = len(pts)
+    vol = np.ones(n) if volumes is None else np.asarray(volumes, np.float64).reshape(-1)
+    E_rel = np.ones(n) if youngs_modulus is None else np.asarray(youngs_modulus, np.float64) / np.mean(youngs_modulus)
+    nu = np.full(n, 0.3) if poisson_ratio is None else np.asarray(poisson_ratio, np.float64).reshape(-1)
+    if bounds is None:
+        bounds = np.stack([pts.min(0), pts.max(0)])
+    W, b = skinning.split_params(params, handles)
+    theta = torch.tensor(np.concatenate([W, b[:, None]], axis=1), dtype=torch.float64)
+    loss_fn = _SimplicitsLoss(skinning.normalise_points(pts, bounds), vol, E_rel, nu, W.shape[1])
+    gen = torch.Generator().manual_seed(seed)
+    Z = torch.randn(samples, handles + 1, 3, 4, generator=gen, dtype=torch.float64) * transform_scale
+    with torch_threads(1), torch.no_grad():
+        elastic, orth = loss_fn(theta, Z)
+    return float(elastic) / transform_scale ** 2, float(orth)
 
 
 def expected_energy(theta: np.ndarray, x_hat: np.ndarray, volumes: np.ndarray, stiffness: np.ndarray) -> np.ndarray:
