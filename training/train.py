@@ -43,6 +43,9 @@ if __package__ in (None, ""):  # run as a file (torchrun training/train.py): imp
 from ..core.errors import CancelledError, UserError  # noqa: E402  (stdlib-only module)
 
 PRECISIONS = ("auto", "fp32", "bf16")
+CACHE_BYTES = 1 << 30
+"""At most this many bytes of features are kept in memory per data-loading process (small datasets
+are then read from disk once)."""
 LOG_FILE = "train_log.jsonl"
 
 
@@ -84,7 +87,7 @@ class TrainSettings:
     sampling: dict = field(default_factory=dict)
     dump_gradients: Optional[str] = None
     stats_out: Optional[str] = None
-    cache_samples: int = 64
+    cache_samples: int = 256
     stop_after: Optional[int] = None
 
     def warmup_steps(self) -> int:
@@ -183,6 +186,7 @@ class StepSamples:
         self.local = batch // world
         self.cache_limit = cache_limit
         self._cache: dict = {}
+        self._cached_bytes = 0
         self._perms: dict = {}
 
     def __len__(self):
@@ -212,8 +216,10 @@ class StepSamples:
         sample = self._cache.get(path)
         if sample is None:
             sample = TrainingSample.load(path)
-            if len(self._cache) < self.cache_limit:
+            size = sample.grid.features.nbytes
+            if len(self._cache) < self.cache_limit and self._cached_bytes + size <= CACHE_BYTES:
                 self._cache[path] = sample
+                self._cached_bytes += size
         return sample, sample_seed(self.seed, step, pos), path
 
 
@@ -297,8 +303,7 @@ def train(s: TrainSettings, progress=None) -> dict:
     import torch
     import torch.distributed as dist
 
-    from ..core.model.checkpoint import is_checkpoint, load_model, load_training_state
-    from ..core.model.checkpoint import read_config
+    from ..core.model.checkpoint import is_checkpoint, load_model, load_training_state, read_config
     from ..core.model.network import UniPixieModel
     from ..core.model.objective import LossWeights, SamplingSettings, TrainingObjective, make_draws
     from ..core.progress import Progress

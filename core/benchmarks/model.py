@@ -30,7 +30,9 @@ def add_arguments(p):
     p.add_argument("--train-steps", type=int, default=None, help="training steps to time (default 20 GPU / 4 CPU)")
     p.add_argument("--train-batch", type=int, default=None, help="objects per GPU per step (default 2 GPU / 1 CPU)")
     p.add_argument("--ddp-procs", type=int, default=None, help="also time torchrun with this many GPUs (default: all, if > 1)")
-    p.add_argument("--skip-train", action="store_true", help="only time inference")
+    p.add_argument("--cases", default="mpm1,all1,all11,train",
+                   help="comma-separated subset of: mpm1 (MPM head, 1 alpha), all1 (all heads, 1 alpha), "
+                        "all11 (all heads, 11 alphas), train (training samples/s); default all")
 
 
 def _cpu_name() -> str:
@@ -69,10 +71,17 @@ def run(args) -> list[dict]:
     from ..benchmarks import median_time
     from ..model.config import preset
     from ..model.inference import Predictor, resolve_torch_device
+    from ..model.layout import VoxelBatch
     from ..model.network import UniPixieModel
     from ..types import FeatureGrid, GridGeometry
     from ...training.synthetic import procedural_occupancy
 
+    cases = {c.strip() for c in args.cases.split(",") if c.strip()}
+    unknown = cases - {"mpm1", "all1", "all11", "train"}
+    if unknown:
+        from ..errors import UserError
+
+        raise UserError(f"unknown --cases {sorted(unknown)}; choose from mpm1, all1, all11, train")
     dev = resolve_torch_device(args.device)
     gpu = dev.type == "cuda"
     runs = args.runs or (5 if gpu else 1)
@@ -92,8 +101,7 @@ def run(args) -> list[dict]:
     grid = FeatureGrid(GridGeometry(R, [-0.5] * 3, 1.0 / R), occ, rng.normal(size=(K, args.feature_dim)).astype(np.float16),
                        feature_model="bench-random")
     name = _device_name(dev)
-    tokens = int(predictor.model.layout(__import__("unipixie.core.model.layout", fromlist=["VoxelBatch"]).VoxelBatch.from_grids(
-        [occ], [np.zeros((K, 1), np.float32)])).token_valid.sum())
+    tokens = int(predictor.model.layout(VoxelBatch.from_grids([occ], [np.zeros((K, 1), np.float32)])).token_valid.sum())
     params = predictor.model.parameter_count()["total"]
     base = f"{args.preset} sizes ({params / 1e6:.0f}M params), 64^3, {K} voxels, {tokens} patch tokens, D={args.feature_dim}"
     print(f"model: {base}; device {name}; {runs} run(s) per case", flush=True)
@@ -103,7 +111,8 @@ def run(args) -> list[dict]:
         if gpu:
             torch.cuda.synchronize(dev)
             torch.cuda.reset_peak_memory_stats(dev)
-        med, times = median_time(lambda: predictor.predict(grid, alphas, heads=heads), runs=runs, warmup=1)
+        # GPU: one untimed run per case (kernel selection, allocator); CPU: none (nothing to warm, and slow)
+        med, times = median_time(lambda: predictor.predict(grid, alphas, heads=heads), runs=runs, warmup=1 if gpu else 0)
         entry = {"case": f"{label}, {base}", "device": name, "metric": metric, "value": med, "runs": runs,
                  "unit": "s", "times": times}
         results.append(entry)
@@ -114,13 +123,18 @@ def run(args) -> list[dict]:
                             "value": peak, "runs": runs, "unit": "GiB"})
 
     heads = ("mpm", "lbs", "spring_mass")
-    timed([0.5], ("mpm",), "inference_s_mpm_1alpha", "MPM head, 1 alpha, 15 Heun steps")
-    timed([0.5], heads, "inference_s_all_heads_1alpha", "all heads, 1 alpha, 15 Heun steps")
-    timed(list(np.linspace(0, 1, 11)), heads, "inference_s_all_heads_11alpha", "all heads, 11 alphas, 15 Heun steps")
+    if not gpu:  # allocate once outside the timed runs
+        predictor.predict(grid, [0.5], heads=("spring_mass",), steps=1)
+    if "mpm1" in cases:
+        timed([0.5], ("mpm",), "inference_s_mpm_1alpha", "MPM head, 1 alpha, 15 Heun steps")
+    if "all1" in cases:
+        timed([0.5], heads, "inference_s_all_heads_1alpha", "all heads, 1 alpha, 15 Heun steps")
+    if "all11" in cases:
+        timed(list(np.linspace(0, 1, 11)), heads, "inference_s_all_heads_11alpha", "all heads, 11 alphas, 15 Heun steps")
     del predictor, model
     if gpu:
         torch.cuda.empty_cache()
-    if args.skip_train:
+    if "train" not in cases:
         return results
 
     from ...training.train import TrainSettings, train
