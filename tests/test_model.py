@@ -207,6 +207,8 @@ def test_mismatched_checkpoints_and_inputs_are_refused(tmp_path):
         load_model(other)
     with pytest.raises(UserError, match="not a UniPixie checkpoint"):
         Predictor.load(tmp_path / "nowhere", device="cpu")
+    with pytest.raises(UserError, match="do not match the registry"):  # classes in another order
+        Predictor(UniPixieModel(_config(class_names=tuple(reversed(names())))))
 
 
 def _strip_metadata(path):

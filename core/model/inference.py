@@ -22,6 +22,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ...solvers import materials
 from ..errors import UserError
 from ..progress import Progress, silent
 from ..types import FeatureGrid, MaterialField
@@ -147,6 +148,10 @@ class Predictor:
         self.cfg: ModelConfig = model.cfg
         self.checkpoint = str(checkpoint)
         self.key = key
+        registry = tuple(materials.names())
+        if registry[: len(self.cfg.class_names)] != tuple(self.cfg.class_names):
+            raise UserError(f"checkpoint {checkpoint or ''} predicts material classes {list(self.cfg.class_names)}, which do "
+                            f"not match the registry's {list(registry)} (ids must agree); retrain the model")
         if precision == "auto":
             precision = "bf16" if self.device.type == "cuda" else "fp32"
         if precision not in ("fp32", "bf16"):
