@@ -173,3 +173,31 @@ def test_train_script_runs_from_a_bare_checkout(repo_root):
                           capture_output=True, text=True, env=env, cwd="/", timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "--data" in proc.stdout and "--resume" in proc.stdout
+
+
+def test_training_needs_only_torch_numpy_safetensors(data, tmp_path, repo_root):
+    """The GPU machine has torch, numpy and safetensors only: block every other third-party package."""
+    code = f"""
+import sys, importlib.abc, importlib.machinery
+BLOCKED = ("warp", "bpy", "trimesh", "scipy", "open_clip", "matplotlib", "tqdm", "embreex", "rtree", "PIL", "torchvision")
+class Missing(importlib.abc.Loader):
+    def create_module(self, spec):
+        raise ImportError("not installed on the GPU machine: " + spec.name)
+    def exec_module(self, module):
+        pass
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            return importlib.machinery.ModuleSpec(name, Missing())
+sys.meta_path.insert(0, Block())
+import runpy
+sys.argv = ["train.py", "--data", {str(data)!r}, "--out", {str(tmp_path / "ck")!r}, "--steps", "1", "--preset", "tiny",
+            "--device", "cpu"]
+runpy.run_path({str(repo_root / "training" / "train.py")!r}, run_name="__main__")
+"""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["OMP_NUM_THREADS"] = "1"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd="/", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert is_checkpoint(tmp_path / "ck")
+
