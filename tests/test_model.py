@@ -150,6 +150,16 @@ def test_prediction_shapes_determinism_and_shared_noise():
     assert only.mpm is None and only.spring_mass is None and only.lbs is not None
 
 
+def test_bf16_autocast_path_matches_fp32():
+    """The GPU precision path (bf16 autocast, float32 ODE state), run on the CPU."""
+    m = _model(patch_size=2)
+    g = _grid()
+    a = Predictor(m, precision="fp32").predict(g, [0.0, 1.0], steps=3)
+    b = Predictor(m, precision="bf16").predict(g, [0.0, 1.0], steps=3)
+    assert np.abs(np.log10(a.mpm[1].E) - np.log10(b.mpm[1].E)).max() < 0.1
+    assert np.abs(a.spring_mass[0].stiffness / b.spring_mass[0].stiffness - 1).max() < 0.5
+
+
 def test_config_uses_the_shared_contracts():
     cfg = ModelConfig()
     assert cfg.num_classes == NUM_CLASSES and list(cfg.class_names) == names()
