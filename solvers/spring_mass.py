@@ -39,7 +39,8 @@ The solid is a network of *anchors* (point masses) joined by springs:
   Kelvin–Voigt rate; implicit one-sweep (Jacobi) alternatives were tried and dropped: they
   saturate and no longer damp in proportion to η (measured on the cantilever test).
 * **Contact.**  The ground plane z = h is a hard, inelastic, frictionless (base model)
-  constraint on anchors: an anchor that would cross it lands on it and loses its normal
+  constraint on anchors, applied at z = h + ``contact_offset`` (half the fill spacing: an anchor
+  stands for a cell of material, the lowest anchors lie that far inside the surface): an anchor that would cross it lands on it and loses its normal
   velocity; ``ground_friction`` removes up to μ × that normal impulse from the tangential
   velocity (Coulomb, with sticking).  Anchors inside the scenario's ``pinned_box`` (the
   clamp) or of a ``held_fixed`` class (stationary) never move.
@@ -432,7 +433,8 @@ class SpringMassSimulation(Simulation):
     Public attributes (numpy, SI): ``network`` (:class:`AnchorNetwork`), ``stiffness`` (N,) N,
     ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
     ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping``, ``youngs_modulus`` (N,) Pa the
-    stiffness stands for, ``inv_mass`` (N,) (0 = clamped).
+    stiffness stands for, ``inv_mass`` (N,) (0 = clamped), ``contact_offset`` m (anchors touch the
+    ground this far above it).
     """
 
     solver = "spring_mass"
@@ -477,6 +479,7 @@ class SpringMassSimulation(Simulation):
             self.warnings.append("the spring-mass solver models " + ", ".join(sorted(inelastic))
                                  + " material as an elastic spring network (no granular/fluid/snow law)")
         self.inv_mass = np.where(net.pinned, 0.0, 1.0 / net.mass)
+        self.contact_offset = 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
         # half-edges in CSR order
         s_idx = np.arange(len(net.springs))
         src = np.concatenate([net.springs[:, 0], net.springs[:, 1]])
@@ -614,7 +617,8 @@ class SpringMassSimulation(Simulation):
             out_x = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
             out_v = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
         has_ground = 0 if self.scenario.ground_height is None else 1
-        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height)
+        # anchors stand for cells of material: they touch the ground half a fill spacing above it
+        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height) + self.contact_offset
 
         def step_launches(a, b, dt):
             """(kernel, inputs) of one substep from buffer a to buffer b."""
