@@ -46,6 +46,9 @@ class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="cpu")
     effects_on: StringProperty(name="Effects on", default="",
                                description="Effects already in the model, separated by ';' (e.g. linear_drag:c=0.2)")
+    solver_settings: StringProperty(name="Solver settings", default="",
+                                    description="key=value pairs separated by ',' (e.g. anchors=256); empty: the "
+                                                "diagnosis defaults")
     candidates: StringProperty(name="Candidates", default="",
                                description="Effects to try, separated by ',' (empty: every effect of the registry)")
     out_dir: StringProperty(name="Report folder", subtype="DIR_PATH", default="//unipixie_diagnosis")
@@ -72,6 +75,15 @@ def _load(settings):
     if not settings.measurement_path:
         raise UserError("no measurement loaded: use 'Load measurement' first")
     return load(bpy.path.abspath(settings.measurement_path))
+
+
+def _solver_settings(settings):
+    """The solver settings of the panel (``anchors=256, ...``), or the diagnosis defaults for the solver."""
+    from ..core.commands.diagnose import parse_settings
+    from ..core.diagnosis.diagnose import DEFAULT_SETTINGS
+
+    items = [x.strip() for x in settings.solver_settings.split(",") if x.strip()]
+    return parse_settings(items) if items else (dict(DEFAULT_SETTINGS.get(settings.solver, {})) or None)
 
 
 def _colour(settings, per_point, vmax=None) -> None:
@@ -191,7 +203,7 @@ class UNIPIXIE_OT_compare_measurement(JobOperator, bpy.types.Operator):
         s = _settings(context)
         m = _load(s)
         effects_on = _effects_on(s.effects_on)
-        solver, device = s.solver, s.device
+        solver, device, settings = s.solver, s.device, _solver_settings(s)
         progress = Progress(total=1.0, show_bar=False)
 
         def work():
@@ -200,7 +212,7 @@ class UNIPIXIE_OT_compare_measurement(JobOperator, bpy.types.Operator):
             progress.set_status(f"preparing {solver}")
             mat = m.require_material()
             sim = api.prepare(solver, m.body(), mat.to_spec(m.rest), m.scenario, m.times - m.times[0],
-                              device=resolve_device(device))
+                              device=resolve_device(device), settings=settings)
             progress.set_status("simulating")
             traj = sim.run(effects_on, progress=progress)
             return compare(traj.positions, m.positions, m.times, m.rest)
@@ -234,12 +246,13 @@ class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
         effects_on = _effects_on(s.effects_on)
         cands = [c.strip() for c in s.candidates.split(",") if c.strip()] or None
         out_dir = bpy.path.abspath(s.out_dir) if s.out_dir else bpy.path.abspath("//unipixie_diagnosis")
-        solver, device, max_add = s.solver, s.device, s.max_additions
+        solver, device, max_add, settings = s.solver, s.device, s.max_additions, _solver_settings(s)
         progress = Progress(total=100.0, show_bar=False)
 
         def work():
             return diagnose.diagnose(m, solver, out_dir=out_dir, effects_on=effects_on, max_additions=max_add,
-                                     device=resolve_device(device), candidates=cands, progress=progress)
+                                     device=resolve_device(device), settings=settings, candidates=cands,
+                                     progress=progress)
 
         result = yield from _run_in_thread(work, progress)
         return result, out_dir
@@ -331,6 +344,7 @@ class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
         row = layout.row()
         row.prop(s, "solver", expand=True)
         layout.prop(s, "device")
+        layout.prop(s, "solver_settings")
         layout.prop(s, "effects_on")
         layout.operator("unipixie.compare_measurement", icon="DRIVER_DISTANCE")
         box = layout.box()

@@ -67,6 +67,9 @@ _SEPARATE_STARTS = ("material_damping",)
 """Effects whose start grid spans decades of the stable time step: each start runs in its own launch."""
 DEFAULT_REGION_CLUSTERS = 6
 BASE_SCALE_BOUNDS = (0.05, 20.0)
+DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}}
+"""Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
+spring-mass anchors), because a diagnosis runs hundreds of simulations."""
 MAX_DAMPING_RATIO = 0.5
 """Largest Kelvin–Voigt viscosity tried, as a damping ratio of the solid's first axial mode (ω ≈ π c / L).
 Explicit solvers need a time step ∝ 1/η, so the cost of a simulation grows with η; "moderate"
@@ -598,7 +601,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     add: effect names to add in this order whatever the ranking (the user's picks); after them
     the best significant effect is added each round.  max_additions: rounds that add an effect
     (0: rank only).  candidates: effect names to try (default: the whole registry).
-    settings: solver settings (dict or the solver's settings object).  out_dir: write
+    settings: solver settings (dict or the solver's settings object; default :data:`DEFAULT_SETTINGS`).  out_dir: write
     ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
     Returns a :class:`Diagnosis`.
     """
@@ -628,6 +631,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     say(f"noise estimated from the tracks: σ = {1e3 * sigma:.3g} mm per coordinate "
         f"(noise floor RMSE {1e3 * noise_rmse(sigma):.3g} mm)")
     frame_times = measurement.times - measurement.times[0]
+    if settings is None:
+        settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
     progress.set_status(f"preparing the {solver} simulation")
     sim = api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
                       device=device, settings=settings, progress=None)

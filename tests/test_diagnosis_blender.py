@@ -1,0 +1,138 @@
+"""Measurements in Blender (through real bpy): the animated point cloud, the error colour attribute,
+reading an object's keyframed motion, and the panel operators (load, compare, diagnose, add effect)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.blender
+
+
+def _evaluated(bpy, obj, frame):
+    """Vertex positions of ``obj`` at ``frame`` with its point-drawing modifier off."""
+    bpy.context.scene.frame_set(frame)
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = obj.evaluated_get(dg)
+    me = ev.to_mesh()
+    co = np.empty(len(me.vertices) * 3, dtype=np.float32)
+    me.vertices.foreach_get("co", co)
+    ev.to_mesh_clear()
+    return co.reshape(-1, 3)
+
+
+def _measurement(T=6, fps=24.0):
+    from unipixie.core.measurement import MeasuredMaterial, Measurement
+
+    rest = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.2 + [0, 0, 0.5]
+    t = np.arange(T) / fps
+    pos = rest[None] + np.array([0.3, 0.0, -1.0])[None, None] * t[:, None, None]
+    pos[2, 3] = np.nan  # occluded
+    return Measurement(pos, t, scenario={"format": "unipixie.measurement/1", "ground": None}, rest_positions=rest,
+                       material=MeasuredMaterial(2e5, 0.3, 1000.0))
+
+
+def test_point_cloud_follows_the_measurement(blender, tmp_path):
+    bpy = blender
+    from unipixie.core.blender_io import measure as bio
+
+    m = _measurement()
+    path = m.save(tmp_path / "m.npz")
+    assert bpy.ops.unipixie.load_measurement(filepath=str(path)) == {"FINISHED"}
+    s = bpy.context.scene.unipixie_diagnosis
+    obj = s.measurement_object
+    assert obj is not None and len(obj.data.vertices) == 8 and obj.modifiers[0].type == "NODES"
+    obj.modifiers[0].show_viewport = False
+    f0 = bpy.context.scene.frame_start
+    for i in (0, 1, 4, 5):
+        assert np.allclose(_evaluated(bpy, obj, f0 + i), m.positions[i], atol=1e-5)
+    held = _evaluated(bpy, obj, f0 + 2)  # the occluded point holds its last observed position
+    assert np.allclose(held[3], m.positions[1, 3], atol=1e-5)
+    assert np.allclose(held[[0, 1, 2, 4, 5, 6, 7]], m.positions[2][[0, 1, 2, 4, 5, 6, 7]], atol=1e-5)
+    observed = np.empty(8, dtype=np.float32)
+    obj.data.attributes[bio.OBSERVED_ATTRIBUTE].data.foreach_get("value", observed)
+    assert observed[3] == pytest.approx(5 / 6) and observed[0] == 1.0
+
+
+def test_error_colour_attribute(blender):
+    bpy = blender
+    from unipixie.core.blender_io import measure as bio
+    from unipixie.core.errors import UserError
+
+    bpy.ops.mesh.primitive_cube_add()
+    obj = bpy.context.active_object
+    err = np.array([0.0, 0.001, 0.002, 0.004, 0.008, np.nan, 0.01, 0.0])
+    assert bio.write_error_attribute(obj, err, vmax=0.01) == bio.ERROR_COLOR_ATTRIBUTE
+    me = obj.data
+    col = np.empty(8 * 4, dtype=np.float32)
+    me.color_attributes[bio.ERROR_COLOR_ATTRIBUTE].data.foreach_get("color", col)
+    col = col.reshape(8, 4)
+    assert me.color_attributes.active_color.name == bio.ERROR_COLOR_ATTRIBUTE
+    assert np.allclose(col[5, :3], 0.5)                    # never observed: grey
+    assert col[6, 1] > col[0, 1] and col[0, 2] > col[6, 2]  # viridis: blue (0) → yellow (vmax)
+    vals = np.empty(8, dtype=np.float32)
+    me.attributes[bio.ERROR_VALUE_ATTRIBUTE].data.foreach_get("value", vals)
+    assert vals[4] == pytest.approx(0.008) and np.isnan(vals[5])
+    bio.write_error_attribute(obj, np.zeros(8))  # writing again replaces, never duplicates
+    assert list(me.color_attributes.keys()).count(bio.ERROR_COLOR_ATTRIBUTE) == 1
+    with pytest.raises(UserError, match="8 vertices but the error has 3"):
+        bio.write_error_attribute(obj, np.zeros(3))
+
+
+def test_measurement_from_keyframed_object(blender, tmp_path):
+    bpy = blender
+    from unipixie.core.blender_io import measure as bio
+    from unipixie.core.measurement import load
+
+    scene = bpy.context.scene
+    scene.frame_start, scene.frame_end = 1, 9
+    scene.render.fps = 24
+    bpy.ops.mesh.primitive_cube_add(size=0.2, location=(0, 0, 1))
+    cube = bpy.context.active_object
+    for f, z in ((1, 1.0), (9, 0.2)):
+        cube.location = (0, 0, z)
+        cube.keyframe_insert("location", frame=f)
+    m = bio.measurement_from_object(cube, scene=scene)
+    assert m.frame_count == 9 and m.point_count == 8 and m.faces is not None and len(m.faces) == 12
+    assert m.times[1] == pytest.approx(1 / 24)
+    assert np.allclose(m.positions[0].mean(0), [0, 0, 1.0]) and np.allclose(m.positions[-1].mean(0), [0, 0, 0.2])
+    assert np.allclose(m.rest.mean(0), [0, 0, 1.0])
+    assert m.scenario.gravity[2] == pytest.approx(-9.81, rel=1e-3)
+    # the panel operator writes the same as a file
+    bpy.context.view_layer.objects.active = cube
+    path = tmp_path / "cube.npz"
+    assert bpy.ops.unipixie.measurement_from_object(filepath=str(path)) == {"FINISHED"}
+    again = load(path)
+    assert np.allclose(again.positions, m.positions) and again.material is not None
+
+
+def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
+    """A small wind measurement through the panel: compare colours the points, diagnose names wind,
+    add effect puts it (with its fitted acceleration) into the model's effects."""
+    bpy = blender
+    from unipixie.core.blender_io import measure as bio
+    from unipixie.core.diagnosis import synth
+
+    m = synth.synthesize(["wind:acceleration=0.8,0,0"], "spring_mass", settings={"anchors": 64}, shape="cube",
+                         scenario="throw", noise=0.001, occlusion=0.0, points=60, duration=0.5, fps=30)
+    path = m.save(tmp_path / "wind.npz")
+    assert bpy.ops.unipixie.load_measurement(filepath=str(path)) == {"FINISHED"}
+    s = bpy.context.scene.unipixie_diagnosis
+    s.solver = "spring_mass"
+    s.solver_settings = "anchors=64"
+    s.out_dir = str(tmp_path / "report")
+    s.candidates = "wind,linear_drag"
+    s.max_additions = 1
+    assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}
+    before = s.rmse
+    assert before > 0.02 and bio.ERROR_COLOR_ATTRIBUTE in s.measurement_object.data.color_attributes
+    assert bpy.ops.unipixie.diagnose() == {"FINISHED"}
+    assert s.identified == "wind" and (tmp_path / "report" / "diagnosis.html").is_file()
+    doc = json.loads((tmp_path / "report" / "diagnosis.json").read_text())
+    assert doc["identified"] == "wind"
+    assert bpy.ops.unipixie.add_effect() == {"FINISHED"}
+    assert s.effects_on.startswith("wind:acceleration=")
+    assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}  # the model now has the wind: the error fell
+    assert s.rmse < 0.2 * before
