@@ -149,8 +149,7 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     ck = tmp_path / "model"
     from unipixie.training.train import main as train_main
 
-    assert train_main(["--data", str(built), "--out", str(ck), "--steps", "2", "--preset", "tiny", "--device", "cpu",
-                       "--fit-normalisation"]) == 0
+    assert train_main(["--data", str(built), "--out", str(ck), "--steps", "2", "--preset", "tiny", "--device", "cpu"]) == 0
     bl = tmp_path / "unet"
     baselines.train(baselines.BaselineTrainSettings(data=str(built), out=str(bl), steps=2, base=4, levels=2,
                                                     device="cpu"), log=None)
