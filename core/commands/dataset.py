@@ -104,11 +104,11 @@ def run(args) -> int:
                                          clip_weights=args.clip_weights,
                                          feature_device="cpu" if args.device == "auto" else args.device,
                                          split=split, ground_truth=_gt_settings(args).to_dict(), **kw)
-        try:
-            import bpy  # noqa: F401
-        except ImportError:
+        import importlib.util
+
+        if importlib.util.find_spec("bpy") is None:
             raise UserError("building a dataset renders with Blender: it needs the 'bpy' module "
-                            "(pip install bpy==5.0.1 with Python 3.11)") from None
+                            "(pip install bpy==5.0.1 with Python 3.11)")
         n = len(dataset.shard_indices(args.count, args.shard))
         with Progress(total=n, description=f"dataset {args.shard[0]}/{args.shard[1]}") as progress:
             summary = dataset.build(args.out, args.count, settings, shard=args.shard,

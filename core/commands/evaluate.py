@@ -51,11 +51,12 @@ def run(args) -> int:
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise UserError(f"checkpoint {checkpoint}: directory not found")
     if args.simulate_objects > 0 and args.render_frames > 0:
+        import importlib.util
+
         import torch._dynamo  # noqa: F401  (triton must be imported before Blender's first render)
-        try:
-            import bpy  # noqa: F401
-        except ImportError:
-            raise UserError("the PSNR/SSIM renders need Blender's 'bpy' module; install it or pass --render-frames 0") from None
+
+        if importlib.util.find_spec("bpy") is None:
+            raise UserError("the PSNR/SSIM renders need Blender's 'bpy' module; install it or pass --render-frames 0")
     from ...training.evaluate import EvalSettings, evaluate
 
     settings = EvalSettings(alphas=alphas, split=args.split, device=args.device, solver_device=args.solver_device,
