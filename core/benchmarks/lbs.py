@@ -1,0 +1,125 @@
+"""``unipixie bench lbs``: LBS solver throughput in implicit steps per second.
+
+Cases (a jelly sphere of radius 0.1 m, E = 100 kPa, ν = 0.3, 1000 kg/m³, falling at 1 m/s onto a
+frictionless ground; 500 cubature points, 10 handles + the constant one, one backward-Euler step
+of 5 ms per frame, Newton with line search; set-up once — including the skinning fit — then
+``sim.run`` timed, median of ``--runs`` after one warm-up run):
+
+* ``500 cubature points, 101k-vertex mesh`` — every vertex of a 101,122-vertex sphere is
+  written every step (x = X + Z a(X), one GEMM per frame) and read back;
+* ``500 cubature points, 642 vertices`` — the same with a small output mesh;
+* ``batch of 8 environments`` — base + 7 effects in one batched Newton solve (metric
+  ``env_steps_per_s``);
+* ``skinning fit`` — :func:`unipixie.solvers.lbs_fit.fit_skinning` of the sphere's fill points
+  (metric ``fit_s``, seconds; lower is better).
+
+``steps_per_s`` = implicit steps of a run / its wall time; entries also give the Newton
+iterations per step.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+HELP = "LBS solver throughput (implicit steps/s): 500 cubature points, 100k-vertex mesh output, batches, skinning fit"
+
+E_BENCH, NU_BENCH, RHO_BENCH = 1.0e5, 0.3, 1000.0
+RADIUS = 0.1
+STEP = 5.0e-3
+
+
+def add_arguments(p):
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
+    p.add_argument("--cubature", type=int, default=500, help="cubature points (default 500)")
+    p.add_argument("--steps", type=int, default=None, help="steps per timed run (default: 200 on a GPU, 30 on the CPU)")
+    p.add_argument("--runs", type=int, default=3, help="timed runs per case (median; default 3)")
+    p.add_argument("--skip-mesh", action="store_true", help="skip the 100k-vertex case")
+
+
+def _timed(fn, runs: int, wp, device) -> list[float]:
+    times = []
+    for _ in range(runs):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def run(args) -> list[dict]:
+    import trimesh
+
+    from ...core.errors import UserError
+    from ...solvers import effects as fx
+    from ...solvers import lbs, lbs_fit
+    from ...solvers.body import Body
+    from ...solvers.material_sampling import HomogeneousMaterial
+    from ...solvers.scenario import Scenario
+    from ...solvers.warp_runtime import device_description, init_warp, resolve_device
+
+    wp = init_warp()
+    device = resolve_device(args.device)
+    if args.runs < 1 or args.cubature < 4:
+        raise UserError("--runs must be at least 1 and --cubature at least 4")
+    steps = args.steps or (200 if device.startswith("cuda") else 30)
+    described = device_description(device)
+    material = HomogeneousMaterial(E_BENCH, NU_BENCH, RHO_BENCH)
+    scenario = Scenario(initial_velocity=[0.0, 0.0, -1.0])
+    centre = (0.0, 0.0, RADIUS + 0.02)
+    frames = np.arange(steps + 1) * STEP
+    settings = {"cubature_points": args.cubature, "max_dt": STEP}
+    results = []
+
+    def bench(case, mesh, effects_lists=None, metric="steps_per_s"):
+        body = Body.from_mesh(mesh)
+        t0 = time.perf_counter()
+        sim = lbs.prepare(body, material, scenario, frames, device=device, settings=settings)
+        prepare_s = time.perf_counter() - t0
+        go = (lambda: sim.run([])) if effects_lists is None else (lambda: sim.run_batch(effects_lists))  # noqa: E731
+        traj = go()
+        traj = traj[0] if isinstance(traj, list) else traj
+        times = _timed(go, args.runs, wp, device)
+        med = statistics.median(times)
+        envs = 1 if effects_lists is None else len(effects_lists)
+        n_steps = traj.meta["steps"]
+        value = {"steps_per_s": n_steps / med, "env_steps_per_s": envs * n_steps / med}[metric]
+        entry = {"case": case, "device": described, "metric": metric, "value": value, "runs": args.runs,
+                 "cubature_points": len(sim.cubature_rest), "handles": sim.handles + 1,
+                 "vertices": int(len(body.tracked_points)), "steps_per_run": n_steps, "environments": envs,
+                 "newton_iterations_per_step": traj.meta["newton_iterations"] / n_steps, "median_run_s": med,
+                 "prepare_s": prepare_s}
+        results.append(entry)
+        print(f"  {case}: {value:.4g} {metric} (run {med:.3g} s, {entry['newton_iterations_per_step']:.2f} Newton "
+              f"iterations/step)", flush=True)
+        return sim
+
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
+    ico.apply_translation(centre)
+    if not args.skip_mesh:
+        big = trimesh.creation.uv_sphere(radius=RADIUS, count=[160, 320])  # 101,122 vertices
+        big.apply_translation(centre)
+        bench(f"{args.cubature} cubature points, {len(big.vertices) // 1000}k-vertex mesh, jelly sphere drop", big)
+    sim = bench(f"{args.cubature} cubature points, {len(ico.vertices)} vertices, jelly sphere drop", ico)
+    effs = [[], [fx.make("linear_drag", c=1.0)], [fx.make("quadratic_drag", k=1.0)],
+            [fx.make("wind", acceleration=[1.0, 0, 0])], [fx.make("ground_friction", mu=0.5)],
+            [fx.make("plasticity", yield_stress=2e3)], [fx.make("material_damping", eta=100.0)],
+            [fx.make("stiffness_region", factor=2.0, region={"box": [[-1, -1, -1], [0, 1, 1]]})]]
+    bench(f"batch of 8 environments, {args.cubature} cubature points", ico, effects_lists=effs,
+          metric="env_steps_per_s")
+    # the data-free skinning fit of the same object (its fill points, as prepare() uses them)
+    pts, vol = sim.mass_rest, sim._fill_volume
+    fit_times = []
+    for _ in range(args.runs):
+        t0 = time.perf_counter()
+        lbs_fit.fit_skinning(pts, vol, bounds=sim.bounds)
+        fit_times.append(time.perf_counter() - t0)
+    med = statistics.median(fit_times)
+    results.append({"case": f"skinning fit, {len(pts)} fill points, {sim.handles} handles (650 parameters)",
+                    "device": described + " (torch CPU)", "metric": "fit_s", "value": med, "runs": args.runs,
+                    "points": int(len(pts))})
+    print(f"  skinning fit: {med:.3g} s", flush=True)
+    return results
