@@ -18,6 +18,20 @@ import sys
 import tempfile
 from pathlib import Path
 
+if __package__ in (None, ""):  # run as a file on a machine with only torch + numpy + safetensors (no install)
+    import importlib.util
+
+    _root = Path(__file__).resolve().parents[2]
+    if "unipixie" not in sys.modules:
+        _spec = importlib.util.spec_from_file_location("unipixie", _root / "__init__.py",
+                                                       submodule_search_locations=[str(_root)])
+        _pkg = importlib.util.module_from_spec(_spec)
+        sys.modules["unipixie"] = _pkg
+        _spec.loader.exec_module(_pkg)
+    __package__ = "unipixie.core.benchmarks"
+
+TRAIN_SCRIPT = Path(__file__).resolve().parents[2] / "training" / "train.py"
+
 HELP = "material model: inference time (all heads, 1 and 11 alphas, 64^3) and training samples/s"
 
 
@@ -156,7 +170,7 @@ def run(args) -> list[dict]:
         if procs and procs > 1:
             stats_file = Path(tmp) / "ddp_stats.json"
             cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={procs}",
-                   "-m", "unipixie.training.train", "--data", str(data), "--out", str(Path(tmp) / "run_ddp"),
+                   str(TRAIN_SCRIPT), "--data", str(data), "--out", str(Path(tmp) / "run_ddp"),
                    "--steps", str(steps), "--batch", str(per_gpu * procs), "--preset", args.preset,
                    "--device", "cuda" if gpu else "cpu", "--save-every", str(10 ** 9), "--log-every", str(10 ** 9),
                    "--warmup", "1", "--stats-out", str(stats_file)]
@@ -167,8 +181,30 @@ def run(args) -> list[dict]:
                 ddp = json.loads(stats_file.read_text())
                 results.append({"case": f"training, all heads + consistency, batch {per_gpu} per GPU, {ddp['precision']}, "
                                         f"torchrun {procs} processes, {steps - 2} timed steps, {base}",
-                                "device": f"{procs} x {name}", "metric": "train_samples_per_s",
+                                "device": f"{procs} x {name}" if gpu else name, "metric": "train_samples_per_s",
                                 "value": ddp["samples_per_s"], "runs": steps - 2,
                                 "vs": {"what": "1 process, same run", "ratio": ddp["samples_per_s"] / stats["samples_per_s"]}})
                 print(f"  train_samples_per_s ({procs} processes): {ddp['samples_per_s']:.3g}", flush=True)
     return results
+
+
+def main(argv=None) -> int:
+    """``python core/benchmarks/model.py [--device cuda] ...`` — the same as ``unipixie bench model``."""
+    import argparse
+
+    from . import print_table, record
+
+    parser = argparse.ArgumentParser(prog="core/benchmarks/model.py", description=HELP)
+    parser.add_argument("--no-record", action="store_true", help="print only; do not write benchmarks/model.json")
+    parser.add_argument("--out", metavar="JSON", help="write to this file instead of benchmarks/model.json")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    results = run(args)
+    print_table(results)
+    if not args.no_record:
+        print(f"recorded {len(results)} result(s) in {record('model', results, path=args.out)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
