@@ -87,7 +87,8 @@ class GridFMT(_FMTBase):
         self.channels, self.extra_outputs, self.slots = channels, extra_outputs, S
         self.in_proj = nn.Linear(S * (channels + 1), C)
         self.pos_proj = nn.Linear(fourier_dim(cfg.fourier_frequencies), C)
-        self.register_buffer("pos_freqs", fourier_frequencies(cfg.fourier_frequencies, cfg.grid_resolution / 2),
+        patches_per_side = cfg.grid_resolution // cfg.patch_size  # frequencies up to the patch grid's Nyquist
+        self.register_buffer("pos_freqs", fourier_frequencies(cfg.fourier_frequencies, patches_per_side / 2),
                              persistent=False)
         self.local_proj = nn.Linear(S * cfg.voxel_channels, C) if cfg.local_features else None
 
