@@ -2,7 +2,8 @@
 
 :meth:`Predictor.predict` encodes the feature grid once, draws **one** noise sample per head (from the
 seed; the same for every α), and integrates dx/dt = v_θ(x, t, α) from t = 0 (noise) to t = 1 (fields)
-with Heun's method (15 steps = 30 function evaluations by default) for all α values as one batch.
+with Heun's method (15 steps: 30 network evaluations, 29 for the default data-predicting network, whose
+last step is an Euler step — see :func:`heun`) for all α values as one batch.
 Because the noise is shared, the fields vary smoothly with α; because it comes from a seeded CPU
 generator, the result is deterministic for a seed (and the same noise on every device).  On CUDA the
 network runs under bf16 autocast (the ODE state stays float32).
