@@ -52,7 +52,7 @@ def test_dropped_soft_block_centre_of_mass_agrees():
     bouncing) dropped from 0.5 m onto the frictionless ground: the centre-of-mass heights of MPM, LBS and
     spring-mass agree within 5 % of the drop height at every frame of 0.6 s.
 
-    Measured separately (not asserted): without damping MPM rebounds to ~85 % of the drop, spring-mass to
+    Measured separately (not asserted): without damping MPM rebounds to ~80 % of the drop, spring-mass to
     ~65 % (inelastic anchor contact), LBS not at all (backward Euler dissipates the impact), so the
     undamped bounce is not a portable quantity; at rest MPM's grid contact holds the block ~0.75 dx (15 mm
     here) above the plane; LBS and spring-mass rest within 2 mm of H/2 − ρ g H² / (3E) (self-weight squash)."""
