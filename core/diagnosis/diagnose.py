@@ -66,7 +66,17 @@ DEFAULT_MAX_ADDITIONS = 3
 _SEPARATE_STARTS = ("material_damping",)
 """Effects whose start grid spans decades of the stable time step: each start runs in its own launch."""
 DEFAULT_REGION_CLUSTERS = 6
-BASE_SCALE_BOUNDS = (0.05, 20.0)
+BASE_SCALE_BOUNDS = (0.1, 10.0)
+"""Range of the E/ρ scale the base fit may use (a model "close to the truth" is within a factor of 10;
+a stiffer model also needs proportionally more time steps)."""
+REGION_FACTOR_BOUNDS = (0.1, 10.0)
+"""Range of the stiffness factor of one region."""
+UNBATCHED_SOLVERS = ("spring_mass",)
+"""Solvers whose ``run_batch`` results depend on what else is in the batch: the spring-mass solver steps
+every environment with the smallest stable substep among them, and its time-integration error
+(≈ g·t·Δt/2 in free flight, millimetres) then changes with the company a parameter set keeps, which
+breaks finite differences and comparisons.  Their environments run one per launch (on the CPU this
+costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
 DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
 spring-mass anchors), because a diagnosis runs hundreds of simulations."""
@@ -118,6 +128,7 @@ class CandidateResult:
     region: Optional[dict] = None
     evaluations: int = 0
     seconds: float = 0.0
+    sse_all: Optional[float] = None
 
     @property
     def score(self) -> float:
@@ -193,6 +204,7 @@ class Diagnosis:
     warnings: list = field(default_factory=list)
     contact_times: list = field(default_factory=list)
     settings: dict = field(default_factory=dict)
+    horizon: Optional[float] = None
 
     @property
     def candidates(self) -> list:
@@ -243,6 +255,7 @@ class Diagnosis:
                                      "the reference model's above-noise squared error removed ≥ min_share AND the "
                                      "fit on the early frames does not predict the held-out later frames worse"},
             "contact_times": self.contact_times,
+            "predictive_until": _f(self.horizon),
             "wall_s": _f(self.wall_s),
             "simulations": int(self.simulations),
             "warnings": list(self.warnings),
@@ -319,7 +332,9 @@ class _Problem:
         self.progress = progress
         self.max_batch = max(1, int(max_batch))
         self.measured = np.asarray(measurement.positions, dtype=np.float64)
-        self.obs = measurement.observed
+        self.obs_all = measurement.observed
+        self.window: Optional[np.ndarray] = None  # (T,) frames the fits use (None: all)
+        self.obs = self.obs_all
         self.target = self.measured[self.obs]  # (K, 3)
         self.n_obs = int(self.obs.sum())
         pts = np.concatenate([np.asarray(sim.sample_positions, dtype=np.float64).reshape(-1, 3),
@@ -379,6 +394,21 @@ class _Problem:
             self.evaluations += len(chunk)
             self.progress.step(len(chunk))
         return out
+
+    def set_window(self, frames: np.ndarray) -> None:
+        """Fit and test on the instants ``frames`` (T,) bool only (the predictive window)."""
+        self.window = np.asarray(frames, dtype=bool)
+        self.obs = self.obs_all & self.window[:, None]
+        self.target = self.measured[self.obs]
+        self.n_obs = int(self.obs.sum())
+        self.size = 3 * self.n_obs
+        self.sample_frame = np.nonzero(self.obs)[0]
+
+    def rmse_all(self, positions: np.ndarray) -> tuple[float, float]:
+        """(squared error m², RMSE m) over all observed samples, whatever the window."""
+        d = positions[self.obs_all] - self.measured[self.obs_all]
+        sse = float(np.sum(d * d)) if np.all(np.isfinite(d)) else math.inf
+        return sse, math.sqrt(sse / max(int(self.obs_all.sum()), 1))
 
     def residual_of(self, positions: np.ndarray) -> np.ndarray:
         r = (positions[self.obs] - self.target).reshape(-1)
@@ -489,7 +519,7 @@ def _plan(name: str, sc: _Scales, E_now: float) -> _Plan:
     if name == "wind":
         return _Plan([{"acceleration": np.zeros(3)}], {"acceleration": max(0.1 * sc.gravity, 0.1)})
     if name == "stiffness_region":
-        return _Plan([{"factor": 1.0}], {"factor": 1.0})
+        return _Plan([{"factor": 1.0}], {"factor": 1.0}, {"factor": REGION_FACTOR_BOUNDS})
     # an effect added to the registry later: a few points across each scalar parameter's range
     cls = fx.get(name)
     starts: list[dict] = []
@@ -592,7 +622,8 @@ def _param_for(ref: _Reference, extra: Sequence[fx.Effect], plans: dict,
 def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_on: Iterable = (),
              add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
-             max_batch: int = 16, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
+             max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
+             predictive_window: bool = True,
              progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
@@ -601,7 +632,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     add: effect names to add in this order whatever the ranking (the user's picks); after them
     the best significant effect is added each round.  max_additions: rounds that add an effect
     (0: rank only).  candidates: effect names to try (default: the whole registry).
-    settings: solver settings (dict or the solver's settings object; default :data:`DEFAULT_SETTINGS`).  out_dir: write
+    settings: solver settings (dict or the solver's settings object; default :data:`DEFAULT_SETTINGS`).
+    max_batch: parameter sets per ``run_batch`` launch (default 16; 1 for :data:`UNBATCHED_SOLVERS`).  out_dir: write
     ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
     Returns a :class:`Diagnosis`.
     """
@@ -640,6 +672,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     for e in effects_on:
         fx.check_supported([e], solver)
     names = [n for n in names if solver in fx.get(n).solvers]
+    if max_batch is None:
+        max_batch = 1 if solver in UNBATCHED_SOLVERS else 16
     P = _Problem(measurement, sim, effects_on, progress, max_batch)
     P.sigma = sigma
     sc = _problem_scales(measurement, material)
@@ -651,7 +685,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     sc.strain = _max_strain(np.asarray(measurement.rest), base_pos, body)
     baseline = compare(base_pos, measurement.positions, measurement.times, measurement.rest,
                        region_count=6)
-    sse_baseline = float(np.sum(P.residual_of(base_pos) ** 2))
+    sse_baseline = P.rmse_all(base_pos)[0]
     say("1. the model as given: " + baseline.describe(noise_rmse(sigma)).replace("\n", "\n   "))
 
     # ---- 2. base fit: E/ρ, several starts -----------------------------------------------------
@@ -672,6 +706,22 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     say(f"2. base fit (E/ρ; E and density cannot be separated from gravity and inertia): E × {base_scale:.3g} → "
         f"RMSE {1e3 * math.sqrt(P.sse(bf.residual) / P.n_obs):.2f} mm")
     ref = _Reference(base_scale, [], P.sse(bf.residual), bf.residual[:P.size], list(effects_on))
+    horizon = None
+    if predictive_window:
+        progress.set_status("checking where the model is predictive")
+        win = _predictive_window(P, ref, sigma, sc)
+        if win is not None:
+            P.set_window(win)
+            horizon = float(measurement.times[np.nonzero(win)[0][-1]])
+            bf = levenberg_marquardt(P.residuals(base_fit_param), bf.u, lo, hi, base_fit_param.steps(),
+                                     max_iter=lm_iterations, progress=progress)  # the base refitted on the window
+            base_scale = float(math.exp(bf.u[0]))
+            ref = _Reference(base_scale, [], P.sse(bf.residual), bf.residual[:P.size], list(effects_on))
+            warnings.append(f"the model is predictive only up to t = {horizon:.3g} s (later its motion stops "
+                            "depending smoothly on E: chaotic contact); effects are fitted and tested on that "
+                            "window, errors are reported over all samples")
+            say(f"   the model is predictive up to t = {horizon:.3g} s only (chaotic later): fitting and testing "
+                "on that window")
 
     # ---- 3.-6. rounds ---------------------------------------------------------------------------
     rounds: list[Round] = []
@@ -706,8 +756,13 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             cands.append(c)
         # significance ---------------------------------------------------------------------------
         tests = sum(c.tests for c in cands)
+        if P.window is not None and cands:  # the spec's rmse / explained are over all observed samples
+            full = P.run([P.model_effects(c.E_scale, c.effects, c.parametrisation.fixed if c.parametrisation
+                                          else ref.fixed) for c in cands])
+            for c, pos in zip(cands, full):
+                c.sse_all, c.rmse = P.rmse_all(pos)
         for c in cands:
-            c.explained = 1.0 - c.sse / max(sse_baseline, 1e-300)
+            c.explained = 1.0 - (c.sse_all if c.sse_all is not None else c.sse) / max(sse_baseline, 1e-300)
             c.explained_beyond_base = 1.0 - c.sse / max(ref.sse, 1e-300)
             c.lr = sig.likelihood_ratio(ref.sse, c.sse, sigma)
             c.threshold = sig.lr_threshold(c.interior, c.bounded, sig.ALPHA, tests)
@@ -781,7 +836,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         pos = P.positions_for(ref.scale, ref.effects, ref.fixed)
         history_positions.append(pos)
         history.append({"effects": [e.name for e in ref.fixed] + [e.name for e in ref.effects],
-                        "rmse": float(math.sqrt(ref.sse / P.n_obs)), "E_scale": float(ref.scale),
+                        "rmse": P.rmse_all(pos)[1], "E_scale": float(ref.scale),
                         "params": [e.to_dict() for e in ref.effects]})
         say(f"   added {choice.name} ({_fmt_params(choice.effect)}), E × {ref.scale:.3g}: RMSE → "
             f"{1e3 * history[-1]['rmse']:.2f} mm")
@@ -812,7 +867,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                        history_positions=history_positions, base_material=base_material, effects_on=effects_on,
                        added=added, E_scale=ref.scale, identified=identified, wall_s=0.0,
                        simulations=P.evaluations, ground_height=measurement.scenario.ground_height,
-                       warnings=warnings, contact_times=contact, settings=settings_used)
+                       warnings=warnings, contact_times=contact, settings=settings_used, horizon=horizon)
     result.wall_s = time.perf_counter() - t_start
     say(f"done in {result.wall_s:.1f} s ({P.evaluations} simulations, {P.sim_seconds:.1f} s simulating)")
     if out_dir is not None:
@@ -824,6 +879,50 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
 
 
 # --------------------------------------------------------------------------- candidates
+def _sse_and_residual(P: _Problem, positions: np.ndarray) -> tuple[float, np.ndarray]:
+    r = P.residual_of(positions)
+    return float(r @ r), r
+
+
+CHAOS_PERTURBATION = 0.02
+"""Relative change of E used to probe where the model stops being predictive."""
+CHAOS_NONLINEARITY = 0.3
+"""The response to E × (1 + 2ε) must stay within this fraction of twice the response to E × (1 + ε)."""
+
+
+def _predictive_window(P: _Problem, ref: _Reference, sigma: float, sc: _Scales) -> Optional[np.ndarray]:
+    """(T,) bool frames up to the predictive horizon, or ``None`` when the model is predictive throughout.
+
+    Long rollouts with tumbling contact are chaotic (shared/notes/diagnosis.md): there the motion stops
+    depending smoothly on the model, fits become rugged and a good model can be far off.  The reference
+    is re-run with E × (1 + ε) and E × (1 + 2ε), ε = 2 %: while the motion depends smoothly on the model,
+    the second moves the points twice as far as the first (RMS over the points, per instant).  The
+    horizon is the first instant at which that ratio is off by more than 30 % while the motion
+    difference exceeds 3 noise levels — or the difference exceeds 10 % of the solid's size.  At least
+    40 % of the duration is kept.
+    """
+    eps = CHAOS_PERTURBATION
+    r0, a, b = P.run([P.model_effects(ref.scale, ref.effects, ref.fixed),
+                      P.model_effects(ref.scale * (1 + eps), ref.effects, ref.fixed),
+                      P.model_effects(ref.scale * (1 + 2 * eps), ref.effects, ref.fixed)])
+    if not all(np.all(np.isfinite(x)) for x in (r0, a, b)):
+        return None
+    s1 = np.sqrt(np.mean(np.sum((a - r0) ** 2, axis=-1), axis=1))
+    s2 = np.sqrt(np.mean(np.sum((b - r0) ** 2, axis=-1), axis=1))
+    resolved = s2 > 3.0 * noise_rmse(sigma)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = s2 / np.maximum(s1, 1e-300)
+    nonlinear = resolved & (np.abs(ratio - 2.0) > 2.0 * CHAOS_NONLINEARITY)
+    over = nonlinear | (s2 > 0.1 * sc.size)
+    if not np.any(over):
+        return None
+    T = len(s1)
+    end = max(int(np.argmax(over)), int(math.ceil(0.4 * T)), 4)
+    if end >= T:
+        return None
+    return np.arange(T) < end
+
+
 def _not_applicable(names: Sequence[str], measurement, sigma: float) -> dict:
     out = {}
     ground = measurement.scenario.ground_height
@@ -990,7 +1089,7 @@ def _fit_region(P: _Problem, ref: _Reference, sc: _Scales, material, plans: dict
         A = np.stack([jE, jR], axis=1)
         coef, *_ = np.linalg.lstsq(A, -r0, rcond=None)
         predicted = float(np.sum((r0 + A @ coef) ** 2))
-        log_f = float(np.clip(coef[1], math.log(0.2), math.log(5.0)))
+        log_f = float(np.clip(coef[1], math.log(REGION_FACTOR_BOUNDS[0]), math.log(REGION_FACTOR_BOUNDS[1])))
         scored.append((predicted, i, math.exp(log_f) if abs(log_f) > 1e-3 else probe))
     scored.sort()
     results = []
@@ -1044,7 +1143,8 @@ def _holdout_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: floa
 
     cache: holds the reference's held-out error for the round (computed once)."""
     t = P.m.times - P.m.times[0]
-    split = sig.HOLDOUT_FRACTION * t[-1]
+    t_end = t[P.window][-1] if P.window is not None else t[-1]
+    split = sig.HOLDOUT_FRACTION * t_end
     train_frames = t <= split
     frame_of_sample = np.broadcast_to(np.arange(len(t))[:, None], P.obs.shape)[P.obs]
     train = np.repeat(train_frames[frame_of_sample], 3)
