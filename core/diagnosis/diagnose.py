@@ -80,7 +80,7 @@ costs nothing: the batched spring-mass kernel scales linearly with the environme
 DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
 spring-mass anchors), because a diagnosis runs hundreds of simulations."""
-MAX_DAMPING_RATIO = 0.5
+MAX_DAMPING_RATIO = 0.3
 """Largest Kelvin–Voigt viscosity tried, as a damping ratio of the solid's first axial mode (ω ≈ π c / L).
 Explicit solvers need a time step ∝ 1/η, so the cost of a simulation grows with η; "moderate"
 damping of compact solids lies well below this."""
