@@ -17,6 +17,7 @@ _MODULE_NAMES = (
     "operators_bake",
     "operators_features",
     "operators_diagnose",
+    "operators_pipeline",
 )
 
 

@@ -1,13 +1,26 @@
 """The UniPixie panel in the 3D view's sidebar (tab "UniPixie").
 
-``draw()`` functions only lay out properties and operators; all state they show
-is computed by operators and stored in properties, so tests can check the
+The main panel shows the pipeline's four steps in order — each a button with its state (done / stale /
+not done / running, and why a step is stale) — *Run all*, the α slider with *Refine at this α* and
+the material-field switch, the solver, the effects with their parameters, the device and the frame
+range.  The Features, Simulate & bake and Diagnose sub-panels hold the detailed options.
+
+``draw()`` functions only lay out properties and operators; every state they show is computed by
+operators and handlers and stored in properties (``obj.unipixie.state_<step>``, ...), so tests check the
 panel's logic through those.
 """
 
 from __future__ import annotations
 
 import bpy
+
+from ..core import pipeline as core
+from ..core.blender_io.scene_import import GEOMETRY_TYPES
+from .properties import EFFECT_PANEL_PARAMS
+
+STATE_ICONS = {core.DONE: "CHECKMARK", core.STALE: "FILE_REFRESH", core.NOT_DONE: "RADIOBUT_OFF",
+               core.RUNNING: "TIME"}
+STEP_ICONS = {"render": "RENDER_STILL", "features": "LIGHTPROBE_VOLUME", "predict": "SHADERFX", "bake": "PHYSICS"}
 
 
 class VIEW3D_PT_unipixie(bpy.types.Panel):
@@ -21,21 +34,63 @@ class VIEW3D_PT_unipixie(bpy.types.Panel):
         layout = self.layout
         obj = context.active_object
         wm = context.window_manager
-        if obj is None or obj.type != "MESH":
+        if obj is None or obj.type not in GEOMETRY_TYPES:
             layout.label(text="Select a mesh object", icon="INFO")
         else:
-            settings = obj.unipixie
-            layout.prop(settings, "alpha", slider=True)
-            row = layout.row()
-            row.prop(settings, "solver", expand=True)
-            layout.prop(settings, "device")
-            if settings.status:
-                layout.label(text=f"Status: {settings.status}")
-            if settings.last_error:
-                layout.label(text=settings.last_error, icon="ERROR")
+            s = obj.unipixie
+            col = layout.column(align=True)
+            for step in core.STEPS:
+                row = col.row(align=True)
+                op = row.operator("unipixie.pipeline_step", text=core.STEP_LABELS[step], icon=STEP_ICONS[step])
+                op.step = step
+                state = getattr(s, f"state_{step}")
+                row.label(text=state, icon=STATE_ICONS.get(state, "QUESTION"))
+                reason = getattr(s, f"reason_{step}")
+                if reason:
+                    col.label(text=f"    {reason}")
+            layout.operator("unipixie.run_all", icon="PLAY")
+
+            box = layout.box()
+            box.prop(s, "alpha", slider=True)
+            row = box.row(align=True)
+            row.operator("unipixie.refine_alpha", icon="ZOOM_IN")
+            row.operator("unipixie.toggle_field", icon="COLOR", depress=s.show_field)
+            if s.field_summary:
+                box.label(text=s.field_summary)
+
+            layout.row().prop(s, "solver", expand=True)
+            layout.prop(s, "bake_material_source")
+
+            box = layout.box()
+            box.label(text="Effects")
+            for name, params in EFFECT_PANEL_PARAMS.items():
+                group = getattr(s.effects, name)
+                box.prop(group, "use")
+                if group.use:
+                    for p in params:
+                        box.prop(group, p.name)
+
+            if wm.unipixie_cuda_available:
+                layout.prop(s, "device")
+            else:
+                layout.label(text="Device: CPU (no CUDA GPU found)", icon="INFO")
+            col = layout.column(align=True)
+            col.prop(s, "use_bake_frame_range")
+            if s.use_bake_frame_range:
+                row = col.row(align=True)
+                row.prop(s, "bake_frame_start")
+                row.prop(s, "bake_frame_end")
+            else:
+                col.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end} (scene)")
+            if s.status:
+                layout.label(text=f"Status: {s.status}")
+            if s.last_error:
+                layout.label(text=s.last_error, icon="ERROR")
         if wm.unipixie_status:
             layout.label(text=wm.unipixie_status)
-        layout.operator("unipixie.check_dependencies", icon="CHECKMARK")
+        row = layout.row(align=True)
+        row.operator("unipixie.refresh_pipeline", icon="FILE_REFRESH")
+        row.operator("unipixie.check_dependencies", icon="CHECKMARK")
 
 
 CLASSES = (VIEW3D_PT_unipixie,)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import bpy
@@ -27,30 +26,39 @@ def add_dependency_path() -> None:
 
 
 def _on_cache_dir(self, context):
-    paths.set_cache_root(self.cache_dir or None)
+    paths.set_cache_root(bpy.path.abspath(self.cache_dir) if self.cache_dir else None)
+    _on_change(self, context)
+
+
+def _on_change(self, context):
+    store_problems(context, check_preferences(self))
 
 
 class UNIPIXIE_AP_preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_ID
 
-    checkpoint: StringProperty(name="Model checkpoint", subtype="FILE_PATH",
-                               description="Directory or model.safetensors of a UniPixie checkpoint (empty: the shipped default model)")
-    clip_weights: StringProperty(name="CLIP weights", subtype="FILE_PATH",
-                                 description="Local OpenCLIP ViT-B-16 weights (file or directory); empty: the offline extractor")
+    checkpoint: StringProperty(name="Model checkpoint", subtype="FILE_PATH", update=_on_change,
+                               description="Directory or model.safetensors of a UniPixie checkpoint (empty: the shipped default model in models/default)")
+    clip_weights: StringProperty(name="CLIP weights", subtype="FILE_PATH", update=_on_change,
+                                 description="Local OpenCLIP ViT-B-16 weights (file or directory); empty: the offline extractor (an untrained ViT, not CLIP)")
     cache_dir: StringProperty(name="Cache directory", subtype="DIR_PATH", update=_on_cache_dir,
                               description="Where renders, feature grids, predictions and bakes are cached (empty: ~/.cache/unipixie)")
-    device: EnumProperty(name="Device", items=[("cpu", "CPU", "Run solvers and the model on the CPU"),
-                                               ("cuda", "CUDA GPU", "Run on the first NVIDIA GPU")], default="cpu")
-    default_view_count: IntProperty(name="Default views", default=24, min=4, max=128,
+    device: EnumProperty(name="Device", update=_on_change,
+                         items=[("cpu", "CPU", "Extract features and run the model on the CPU"),
+                                ("cuda", "CUDA GPU", "Extract features and run the model on the first NVIDIA GPU")],
+                         default="cpu")
+    default_view_count: IntProperty(name="Default views", default=24, min=4, max=128, update=_on_change,
                                     description="Number of rendered views for feature extraction")
 
     def draw(self, context):
         layout = self.layout
         for prop in ("checkpoint", "clip_weights", "cache_dir", "device", "default_view_count"):
             layout.prop(self, prop)
-        for msg in check_preferences(self):
+        problems = context.window_manager.unipixie_preference_problems
+        for msg in problems.splitlines():
             layout.label(text=msg, icon="ERROR")
         row = layout.row()
+        row.operator("unipixie.check_preferences", icon="CHECKMARK")
         row.operator("unipixie.check_dependencies", icon="CHECKMARK")
         row.operator("unipixie.install_dependencies", icon="IMPORT")
         report = context.window_manager.unipixie_dependency_report
@@ -59,17 +67,38 @@ class UNIPIXIE_AP_preferences(bpy.types.AddonPreferences):
 
 
 def check_preferences(prefs) -> list[str]:
-    """Problems with the preferences, as messages (empty when all is well)."""
-    problems = []
-    if prefs.checkpoint and not os.path.exists(bpy.path.abspath(prefs.checkpoint)):
-        problems.append(f"Checkpoint not found: {prefs.checkpoint}")
-    if prefs.clip_weights and not os.path.exists(bpy.path.abspath(prefs.clip_weights)):
-        problems.append(f"CLIP weights not found: {prefs.clip_weights}")
-    if prefs.cache_dir:
-        d = bpy.path.abspath(prefs.cache_dir)
-        if os.path.exists(d) and not os.access(d, os.W_OK):
-            problems.append(f"Cache directory is not writable: {prefs.cache_dir}")
-    return problems
+    """Problems with the preferences, one message each naming the preference and the remedy (empty when all
+    is well): the checkpoint (missing, not a checkpoint, trained on other features than the add-on
+    extracts), the CLIP weights, the cache directory, the device and the default view count."""
+    from ..core.pipeline import check_settings
+
+    return check_settings(checkpoint=bpy.path.abspath(prefs.checkpoint) if prefs.checkpoint else "",
+                          clip_weights=bpy.path.abspath(prefs.clip_weights) if prefs.clip_weights else "",
+                          cache_dir=bpy.path.abspath(prefs.cache_dir) if prefs.cache_dir else "",
+                          device=prefs.device, view_count=prefs.default_view_count)
+
+
+def store_problems(context, problems) -> None:
+    wm = getattr(context, "window_manager", None)
+    if wm is not None and hasattr(wm, "unipixie_preference_problems"):
+        wm.unipixie_preference_problems = "\n".join(problems)
+
+
+class UNIPIXIE_OT_check_preferences(bpy.types.Operator):
+    """Check the add-on preferences: model checkpoint, CLIP weights, cache directory, device, view count"""
+
+    bl_idname = "unipixie.check_preferences"
+    bl_label = "Check preferences"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        problems = check_preferences(get_preferences(context))
+        store_problems(context, problems)
+        for msg in problems:
+            self.report({"WARNING"}, msg)
+        if not problems:
+            self.report({"INFO"}, "preferences are usable")
+        return {"FINISHED"}
 
 
 class _Defaults:
@@ -89,12 +118,18 @@ def get_preferences(context=None):
     return addon.preferences if addon is not None and addon.preferences is not None else _Defaults()
 
 
-CLASSES = (UNIPIXIE_AP_preferences,)
+CLASSES = (UNIPIXIE_AP_preferences, UNIPIXIE_OT_check_preferences)
 
 
 def register():
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    try:
+        prefs = get_preferences(bpy.context)
+        if prefs.cache_dir:
+            paths.set_cache_root(bpy.path.abspath(prefs.cache_dir))
+    except Exception:  # the context is restricted while Blender starts: the preference applies when changed
+        pass
 
 
 def unregister():

@@ -286,14 +286,24 @@ class SubjectInfo:
     names: list
 
 
-def describe_subject(objects) -> SubjectInfo:
+def describe_subject(objects, placement_invariant: bool = False) -> SubjectInfo:
     """World-space triangles and the fingerprint of geometry, UVs, colour attributes, material node trees
-    (values and links) and the pixels / files of their images."""
+    (values and links) and the pixels / files of their images.
+
+    placement_invariant: hash the vertices in the normalised cube (:mod:`..normalise`, rounded to 1e-6 of
+    the subject's size) instead of world space, so moving or uniformly scaling the subject keeps its
+    fingerprint (what the object pipeline uses to tell when features are stale)."""
     h = hashlib.sha256()
     seen: set = set()
     with evaluated_meshes(objects) as meshes:
         verts, faces = _collect_triangles(meshes)
-        _hash_array(h, verts.astype(np.float32))
+        if placement_invariant:
+            from ..normalise import Normalisation
+
+            h.update(b"normalised")
+            _hash_array(h, np.rint(Normalisation.from_points(verts).to_normalised(verts) * 1e6).astype(np.int32))
+        else:
+            _hash_array(h, verts.astype(np.float32))
         _hash_array(h, faces)
         for _, mesh, _ in meshes:
             _mesh_attributes_fingerprint(mesh, h)

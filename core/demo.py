@@ -1,0 +1,507 @@
+"""``unipixie demo``: the whole pipeline on built-in objects, on the CPU, in one command.
+
+What it does (every step prints where it is and shows progress; Ctrl-C stops it):
+
+1. Builds two procedural objects of the dataset (:mod:`unipixie.training.procedural`): a **potted
+   plant** and a **rubber duck**, as textured ``.glb`` files, and imports each into an empty Blender
+   scene as one closed mesh (parts united), with a ground plane, a camera and labels.
+2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
+   extracts the **offline** features (``offline-random-vit-w32``: an untrained ViT, not CLIP — what the
+   shipped model is trained on), and predicts the α sweep with the model (default: the shipped
+   ``models/default``).  Copies of the objects share the prediction (their pipeline record is copied;
+   the fingerprint ignores placement).
+3. Bakes the plant with **MPM at α = 0, 0.5 and 1** (three copies side by side; the pot is clamped and
+   the rest pushed sideways) and the duck, dropped on the ground, once with **LBS** and once with the
+   **spring-mass** solver (α = 0.5).  The MPM grid of each bake is sized to a compute budget from the
+   predicted stiffness (the time step shrinks with the wave speed), so the demo's run time stays bounded
+   whatever the model predicts.
+4. Saves ``<out>/unipixie_demo.blend`` (bakes as shape keys or Mesh Cache files next to it), renders a
+   contact sheet of frames, a picture of the plant's material field per α, and ``summary.json`` with
+   how far every baked object moved and how different the α = 0 and α = 1 bakes are.
+
+``--quick`` is the same with fewer views, a 3-value sweep, fewer frames and coarser solvers (CI).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from .errors import UserError
+from .progress import Progress, silent
+
+
+# --------------------------------------------------------------------------- what the demo does
+@dataclass(frozen=True)
+class DemoObject:
+    """A built-in object: a procedural class, its index and seed in the procedural set, and a label."""
+
+    semantic_class: str
+    index: int
+    seed: int
+    label: str
+
+
+PLANT = DemoObject("potted_plant", 0, 0, "Potted plant")
+DUCK = DemoObject("rubber_duck", 0, 0, "Rubber duck")
+
+
+@dataclass(frozen=True)
+class DemoPlan:
+    """How much work the demo does.
+
+    views / resolution: rendered views per object and their size (px).  sweep_count: α values of the
+    sweep (``None``: the model's default, 11).  frames / fps: the baked clip.  mpm_budget: particle ×
+    substep updates allowed per MPM bake (sets its grid, within ``mpm_cells`` cells across the object).
+    lbs_settings / spring_settings: solver settings.  sheet_frames / sheet_size: the contact sheet.
+    plant_alphas: the MPM bakes; duck_alpha: the LBS and spring-mass bakes.  push_speed: m/s given to
+    the plant (its pot is held); drop_height: m of the duck above the ground.
+    """
+
+    name: str
+    views: int
+    resolution: int
+    sweep_count: Optional[int]
+    frames: int
+    fps: int
+    mpm_budget: float
+    mpm_cells: tuple
+    lbs_settings: dict
+    spring_settings: dict
+    sheet_frames: int
+    sheet_size: tuple
+    plant_alphas: tuple = (0.0, 0.5, 1.0)
+    duck_alpha: float = 0.5
+    push_speed: float = 0.8
+    drop_height: float = 0.25
+
+
+FULL = DemoPlan("full", views=24, resolution=224, sweep_count=None, frames=48, fps=24, mpm_budget=1.2e8,
+                mpm_cells=(10, 32), lbs_settings={}, spring_settings={}, sheet_frames=6, sheet_size=(640, 360))
+QUICK = DemoPlan("quick", views=6, resolution=224, sweep_count=3, frames=12, fps=24, mpm_budget=1.2e7,
+                 mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
+                 spring_settings={}, sheet_frames=4, sheet_size=(480, 270))
+
+BLEND_NAME = "unipixie_demo.blend"
+SHEET_NAME = "contact_sheet.png"
+SUMMARY_NAME = "summary.json"
+CLAMP_GROUP = "UniPixie clamp (pot)"
+MOVE_THRESHOLD = 1e-3
+"""Metres: a baked object whose vertices never move further than this did not "move"."""
+
+
+@dataclass
+class BakeSummary:
+    object: str
+    solver: str
+    alpha: float
+    material: str
+    mode: str
+    simulate_seconds: float
+    max_displacement: float
+    settings: dict = field(default_factory=dict)
+
+
+@dataclass
+class DemoResult:
+    """Where everything is and what happened."""
+
+    out_dir: str
+    blend: str
+    contact_sheet: str
+    field_pictures: list
+    objects: list
+    bakes: list
+    alpha_difference: float
+    seconds: float
+    stage_seconds: dict
+    checkpoint: str
+    plan: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------- checks and sizes
+def check_checkpoint(checkpoint=None) -> Path:
+    """The model the demo uses, refused early when missing or trained on other features than the offline ones."""
+    from . import clip_features as cf
+    from .pipeline import checkpoint_feature_model, resolve_checkpoint
+
+    ckpt = resolve_checkpoint(checkpoint)
+    trained_on, width = checkpoint_feature_model(ckpt)
+    if trained_on != cf.OFFLINE_FEATURE_MODEL:
+        raise UserError(f"the demo extracts the offline features ({cf.OFFLINE_FEATURE_MODEL!r}, no CLIP weights "
+                        f"needed) but the model in {ckpt} was trained on {trained_on!r} (D = {width}); use a "
+                        "checkpoint trained on the offline features (the shipped models/default is)")
+    return ckpt
+
+
+def max_wave_speed(field_world) -> float:
+    """Largest elastic wave speed (m/s) of the simulated, not held material of a world-space MaterialField:
+    sqrt(M / ρ) with M the P-wave modulus (bulk modulus for weakly compressible classes)."""
+    from ..solvers import materials
+    from ..training.ground_truth import p_wave_factor
+
+    mat = np.asarray(field_world.material, np.int64)
+    moving = np.array([c.simulated and not c.held_fixed for c in materials.MATERIAL_CLASSES])[mat]
+    if not moving.any():
+        return 0.0
+    E = np.asarray(field_world.E, np.float64)[moving]
+    nu = np.asarray(field_world.nu, np.float64)[moving]
+    rho = np.asarray(field_world.density, np.float64)[moving]
+    return float(np.sqrt(np.max(E * p_wave_factor(nu, mat[moving]) / rho)))
+
+
+def mpm_cells_for_budget(wave_speed: float, size: float, volume: float, frames: int, fps: float, budget: float,
+                         cells: tuple) -> tuple[int, float]:
+    """The finest MPM grid (cells across the object, within ``cells``) whose cost fits ``budget``.
+
+    Cost = (frames − 1) × substeps per frame × particles, with substeps = ⌈Δt_frame · c / (cfl · dx)⌉ (the
+    solver's CFL bound with its default ``cfl``) and particles = volume / dx³ × (particles per cell) — an
+    estimate (the solver also counts particle speeds).  Returns (cells across, estimated cost).
+    """
+    from ..solvers.mpm import MPMSettings
+
+    s = MPMSettings()
+    lo, hi = int(cells[0]), int(cells[1])
+    cost = math.inf
+    for n in range(hi, lo - 1, -1):
+        dx = size / n
+        substeps = max(1, math.ceil((1.0 / fps) * wave_speed / (s.cfl * dx)))
+        particles = volume / dx ** 3 * s.particles_per_cell_axis ** 3
+        cost = (frames - 1) * substeps * particles
+        if cost <= budget:
+            return n, cost
+    return lo, cost
+
+
+def untrained_checkpoint(directory, preset_name: str = "small", seed: int = 0, spread: float = 0.02,
+                         favour_class: Optional[str] = "jelly", spring_anchors: Optional[int] = None) -> Path:
+    """Save an **untrained** model of a preset's size, for the offline features, as a checkpoint.
+
+    For timing the demo at the shipped model's size and for tests, before a trained model exists: its
+    materials are meaningless.  At initialisation the AdaLN-zero layers are exactly zero (every output
+    would be one constant); they are filled with N(0, spread²).  ``favour_class`` biases the MPM head's
+    class logits so that the object is one simulated material (a random class per voxel would hold
+    stationary voxels fixed all over it).
+    """
+    import torch
+
+    from ..solvers import materials
+    from . import clip_features as cf
+    from .model import UniPixieModel, preset, save_model
+
+    over = {"feature_model": cf.OFFLINE_FEATURE_MODEL, "feature_dim": int(cf.OFFLINE_VISION_CFG["width"])}
+    if spring_anchors is not None:
+        over["spring_anchors"] = int(spring_anchors)
+    if preset_name == "tiny":
+        over["patch_size"] = 4          # tests: per-voxel tokens at 64³ would be slow
+    cfg = preset(preset_name, **over)
+    torch.manual_seed(int(seed))
+    model = UniPixieModel(cfg)
+    g = torch.Generator().manual_seed(int(seed) + 1)
+    with torch.no_grad():
+        for _, p in model.named_parameters():
+            if not p.detach().abs().max() > 0:
+                p.copy_(torch.randn(p.shape, generator=g) * spread)
+        if favour_class is not None:
+            bias = model.mpm.final.linear.bias
+            per_voxel = 3 + cfg.num_classes            # (log E, log ρ, ν) + class logits per voxel of a patch token
+            if bias.numel() == cfg.patch_voxels * per_voxel:
+                bias.view(cfg.patch_voxels, per_voxel)[:, 3 + materials.get(favour_class).id] += 4.0
+    return save_model(model, Path(directory), info={"untrained": True, "preset": preset_name, "seed": int(seed)})
+
+
+# --------------------------------------------------------------------------- the run
+class _Stages:
+    """Progress over the demo's stages (shares of the bar) and the printed timeline."""
+
+    def __init__(self, progress: Progress, say: Callable[[str], None], weights: dict):
+        self.progress, self.say, self.weights = progress, say, weights
+        self.total = sum(weights.values())
+        self.seconds: dict = {}
+        self.t0 = time.perf_counter()
+
+    def sub(self, name: str, text: str) -> Progress:
+        self.say(f"[{time.perf_counter() - self.t0:6.0f} s] {text}")
+        self._name, self._start = name, time.perf_counter()
+        return self.progress.sub(self.weights[name] / self.total * self.progress.total, 1.0, name)
+
+    def done(self):
+        self.seconds[self._name] = round(self.seconds.get(self._name, 0.0) + time.perf_counter() - self._start, 2)
+
+
+def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str = "cpu",
+             say: Callable[[str], None] = print, progress: Optional[Progress] = None) -> DemoResult:
+    """Run the demo (see the module docstring) into ``out_dir``; returns a :class:`DemoResult`.
+
+    It starts a new, empty Blender scene in the current session (the command line's), so run it from the
+    command line, not inside a Blender session with unsaved work.
+    """
+    import bpy  # noqa: F401  (fails early and clearly without Blender)
+
+    from ..training import procedural
+    from .blender_io import demo_scene as ds
+    from .blender_io import pipeline as pio
+    from .blender_io.bake import registered_properties
+    from .pipeline import PipelineSettings
+
+    plan = QUICK if quick else FULL
+    t_start = time.perf_counter()
+    progress = progress or silent()
+    out = Path(out_dir).expanduser().resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = check_checkpoint(checkpoint)
+    say(f"UniPixie demo ({plan.name}): a potted plant and a rubber duck, from pictures to physics, on {device}.")
+    say(f"  model: {ckpt}; output: {out}")
+    stages = _Stages(progress, say, {"objects": 2, "features": 8 if quick else 14, "predict": 10 if quick else 30,
+                                     "bake": 20 if quick else 45, "pictures": 3})
+    settings = PipelineSettings(view_count=plan.views, resolution=plan.resolution, checkpoint=str(ckpt),
+                                sweep_count=plan.sweep_count, device=device)
+
+    with registered_properties():
+        pio.ensure_model_material()
+        # 1. objects and scene --------------------------------------------------------------
+        p = stages.sub("objects", "building the demo objects and the scene")
+        ds.reset(plan.frames, plan.fps)
+        objects_dir = out / "objects"
+        objects_dir.mkdir(exist_ok=True)
+        sources = {}
+        for i, spec in enumerate((PLANT, DUCK)):
+            po = procedural.generate(spec.index, seed=spec.seed, semantic_class=spec.semantic_class)
+            glb = po.export_glb(objects_dir / f"{spec.semantic_class}.glb")
+            sources[spec.semantic_class] = ds.import_solid(glb, f"{spec.label} (source)")
+            p.step(0.5 / 2)
+        plant, duck = sources["potted_plant"], sources["rubber_duck"]
+        ds.part_vertex_group(plant, "pot", CLAMP_GROUP)
+        ground = ds.add_ground()
+        pw = float(np.ptp(np.asarray([plant.matrix_world @ v.co for v in plant.data.vertices])[:, 0]))
+        gap = max(0.35, 1.6 * pw)
+        plants, ducks = [], []
+        for k, a in enumerate(plan.plant_alphas):
+            x = (k - 1) * gap
+            obj = plant if k == 0 else ds.duplicate(plant, f"Potted plant α={a:g}", x, 0.0)
+            if k == 0:
+                obj.name = obj.data.name = f"Potted plant α={a:g}"
+                ds.place_on_ground(obj, x, 0.0)
+            _setup(obj, solver="mpm", alpha=a, ground=ground, device=device, clamp_group=CLAMP_GROUP,
+                   velocity=(plan.push_speed, 0.0, 0.0))
+            ds.add_label(f"MPM, α = {a:g}", (x, -0.2, -0.06))
+            plants.append(obj)
+        for k, solver in enumerate(("lbs", "spring_mass")):
+            x = 1.5 * gap + k * 0.45 * gap
+            name = f"Rubber duck {'LBS' if solver == 'lbs' else 'spring-mass'}"
+            obj = duck if k == 0 else ds.duplicate(duck, name, x, -0.25, plan.drop_height)
+            if k == 0:
+                obj.name = obj.data.name = name
+                ds.place_on_ground(obj, x, -0.25, plan.drop_height)
+            _setup(obj, solver=solver, alpha=plan.duck_alpha, ground=ground, device=device)
+            ds.add_label(f"{'LBS' if solver == 'lbs' else 'spring-mass'}, α = {plan.duck_alpha:g}", (x, -0.35, -0.06),
+                         size=0.04)
+            ducks.append(obj)
+        ds.add_camera(target=(0.45 * gap, 0.0, 0.3), distance=1.2 + 2.0 * gap)
+        blend = out / BLEND_NAME
+        bpy_save(blend)          # saved first: bakes write their point caches next to it
+        p.step(0.5)
+        stages.done()
+
+        # 2. render views + features --------------------------------------------------------------
+        p = stages.sub("features", f"rendering {plan.views} views per object and extracting the offline features "
+                                   "(untrained ViT, not CLIP)")
+        for i, src in enumerate((plants[0], ducks[0])):
+            result = pio.run_to_end(pio.features_step(src, settings), p.sub(0.5, 1.0, src.name))
+            say(f"         {src.name}: {int(result.grid.occupancy.sum())} voxels, D = {result.grid.dim} "
+                f"({'cache' if result.cache_hit else f'{sum(result.timings.values()):.1f} s'})")
+        stages.done()
+
+        # 3. predict the α sweeps -----------------------------------------------------------------
+        count = settings.resolved_sweep_count()
+        p = stages.sub("predict", f"predicting the α sweep ({count} values of α in one batched pass per object)")
+        heads = {plants[0].name: ("mpm",), ducks[0].name: ("mpm", "lbs", "spring_mass")}
+        for src in (plants[0], ducks[0]):
+            s = PipelineSettings(**{**settings.to_dict(), "heads": heads[src.name]})
+            t = time.perf_counter()
+            sweep = pio.run_to_end(pio.predict_step(src, s), p.sub(0.5, 1.0, src.name))
+            say(f"         {src.name}: heads {', '.join(heads[src.name])} in {time.perf_counter() - t:.1f} s")
+        for group in (plants, ducks):
+            for obj in group[1:]:
+                pio.copy_pipeline(group[0], obj)
+        stages.done()
+
+        # 4. bakes ----------------------------------------------------------------------------------
+        p = stages.sub("bake", f"baking {len(plants)} MPM bakes, one LBS and one spring-mass bake "
+                               f"({plan.frames} frames at {plan.fps} fps)")
+        bakes = []
+        jobs = [(o, "mpm", float(a)) for o, a in zip(plants, plan.plant_alphas)]
+        jobs += [(ducks[0], "lbs", plan.duck_alpha), (ducks[1], "spring_mass", plan.duck_alpha)]
+        for obj, solver, alpha in jobs:
+            pio.sync_plan(obj, settings)
+            solver_settings = _solver_settings(obj, solver, alpha, plan, say)
+            rep = pio.run_to_end(pio.bake_step(obj, settings, solver_settings=solver_settings),
+                                 p.sub(1.0 / len(jobs), 1.0, obj.name))
+            moved = _max_displacement(obj, plan.frames)
+            bakes.append(BakeSummary(obj.name, solver, alpha, rep.material, rep.mode, round(rep.simulate_seconds, 2),
+                                     moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}))
+            say(f"         {obj.name}: {solver} at α = {alpha:g} → {rep.mode.replace('_', ' ')}, simulated in "
+                f"{rep.simulate_seconds:.1f} s, moved up to {100 * moved:.1f} cm")
+        bpy_save(blend)
+        stages.done()
+
+        # 5. pictures -------------------------------------------------------------------------------
+        p = stages.sub("pictures", "rendering the contact sheet and the field pictures")
+        frames = np.unique(np.linspace(1, plan.frames, plan.sheet_frames).round().astype(int)).tolist()
+        paths = ds.render_frames(frames, out / "frames", size=plan.sheet_size)
+        sheet = contact_sheet(paths, [f"frame {f} (t = {(f - 1) / plan.fps:.2f} s)" for f in frames], out / SHEET_NAME)
+        p.step(0.5)
+        sweep_path = pio.read_record(plants[0]).file("predict", "sweep")
+        fields = field_pictures(sweep_path, plan.plant_alphas, out, title=PLANT.label)
+        p.step(0.5)
+        stages.done()
+
+    difference = _alpha_difference(plants[0], plants[-1], plan.frames)
+    result = DemoResult(out_dir=str(out), blend=str(blend), contact_sheet=str(sheet),
+                        field_pictures=[str(f) for f in fields], objects=[str(p) for p in sorted(objects_dir.glob("*.glb"))],
+                        bakes=[asdict(b) for b in bakes], alpha_difference=difference,
+                        seconds=round(time.perf_counter() - t_start, 1), stage_seconds=stages.seconds,
+                        checkpoint=str(ckpt), plan=plan.name)
+    (out / SUMMARY_NAME).write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    say(f"Done in {result.seconds:.0f} s.  α = 0 and α = 1 plants differ by up to {100 * difference:.1f} cm.")
+    say(f"  Blender file:    {blend}  (open it, press Space to play; the UniPixie panel shows every step done)")
+    say(f"  contact sheet:   {sheet}")
+    say(f"  field pictures:  {', '.join(str(f) for f in fields)}")
+    say(f"  objects (.glb):  {objects_dir}")
+    say(f"  summary:         {out / SUMMARY_NAME}")
+    return result
+
+
+def bpy_save(path: Path) -> None:
+    import bpy
+
+    from .blender_io.scene_import import quiet_blender_output
+
+    with quiet_blender_output():
+        bpy.ops.wm.save_as_mainfile(filepath=str(path), relative_remap=True)
+
+
+def _setup(obj, solver: str, alpha: float, ground, device: str, clamp_group: str = "",
+           velocity=(0.0, 0.0, 0.0)) -> None:
+    s = obj.unipixie
+    s.solver, s.alpha, s.bake_material_source = solver, float(alpha), "model"
+    s.device = "cuda" if str(device).startswith("cuda") else "cpu"
+    s.bake_ground = ground
+    s.bake_clamp_group = clamp_group
+    s.bake_initial_velocity = velocity
+
+
+def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, say) -> dict:
+    """Solver settings of one demo bake; MPM: the grid that fits the plan's compute budget."""
+    if solver == "lbs":
+        return dict(plan.lbs_settings)
+    if solver == "spring_mass":
+        return dict(plan.spring_settings)
+    from .blender_io import demo_scene as ds
+    from .blender_io.bake import read_object
+    from .pipeline import model_material
+
+    bo = read_object(obj)
+    field_world = model_material(bo, alpha, "mpm").spec
+    c = max_wave_speed(field_world)
+    cells, cost = mpm_cells_for_budget(c, bo.size, ds.mesh_volume(obj), plan.frames, plan.fps, plan.mpm_budget,
+                                       plan.mpm_cells)
+    say(f"         {obj.name}: wave speed up to {c:.0f} m/s → MPM grid of {cells} cells across "
+        f"(~{cost:.2g} particle-substeps)")
+    return {"cells_across": cells}
+
+
+def _max_displacement(obj, frames: int) -> float:
+    """Largest distance (m) any vertex of the baked object gets from its rest position over the clip."""
+    from .blender_io.bake import evaluated_positions
+
+    rest = evaluated_positions(obj, 1)
+    return float(max(np.linalg.norm(evaluated_positions(obj, f) - rest, axis=1).max()
+                     for f in range(2, int(frames) + 1)))
+
+
+def _alpha_difference(a, b, frames: int) -> float:
+    """Largest difference (m) between two baked copies' displacements from rest over the clip."""
+    from .blender_io.bake import evaluated_positions
+
+    ra, rb = evaluated_positions(a, 1), evaluated_positions(b, 1)
+    return float(max(np.linalg.norm((evaluated_positions(a, f) - ra) - (evaluated_positions(b, f) - rb), axis=1).max()
+                     for f in range(2, int(frames) + 1)))
+
+
+# --------------------------------------------------------------------------- pictures (no Blender)
+def contact_sheet(images, captions, path, columns: Optional[int] = None) -> Path:
+    """Tile PNG ``images`` into one sheet (``columns``: default about square) with a caption under each."""
+    from PIL import Image, ImageDraw
+
+    tiles = [Image.open(p).convert("RGB") for p in images]
+    if not tiles:
+        raise UserError("no frames to put on the contact sheet")
+    w, h = tiles[0].size
+    cols = min(columns or math.ceil(math.sqrt(len(tiles))), len(tiles))
+    rows = math.ceil(len(tiles) / cols)
+    pad = 22
+    sheet = Image.new("RGB", (cols * w, rows * (h + pad)), "white")
+    draw = ImageDraw.Draw(sheet)
+    for i, (tile, cap) in enumerate(zip(tiles, captions)):
+        x, y = (i % cols) * w, (i // cols) * (h + pad)
+        sheet.paste(tile, (x, y))
+        draw.text((x + 6, y + h + 5), cap, fill=(0, 0, 0))
+    path = Path(path)
+    sheet.save(path)
+    return path
+
+
+def field_pictures(sweep_path, alphas, out_dir, title: str = "") -> list:
+    """One PNG per α: two slices through the object's centre (front: x–z, side: y–z) coloured by log10 E
+    with the viewport's colour map and one colour scale for all α (so the pictures compare)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    from .pipeline import FieldColourScale, format_pascal, load_sweep
+
+    sweep = load_sweep(sweep_path)
+    scale = FieldColourScale.of_sweep(sweep)
+    cmap = ListedColormap(scale.lut_srgb)
+    cmap.set_bad("white")
+    occ = sweep.occupancy
+    idx = np.argwhere(occ)
+    centre = np.round(idx.mean(0)).astype(int)
+    lo, hi = idx.min(0), idx.max(0) + 1
+    paths = []
+    for a in alphas:
+        vol = np.full(occ.shape, np.nan)
+        vol[occ] = sweep.values_at("log10_E", float(a))
+        fig, axes = plt.subplots(1, 2, figsize=(8, 4.6), constrained_layout=True)
+        front = vol[lo[0]:hi[0], centre[1], lo[2]:hi[2]].T            # (z, x)
+        side = vol[centre[0], lo[1]:hi[1], lo[2]:hi[2]].T             # (z, y)
+        im = None
+        for ax, img, name in ((axes[0], front, "front (x–z) slice"), (axes[1], side, "side (y–z) slice")):
+            im = ax.imshow(np.ma.masked_invalid(img), origin="lower", cmap=cmap, vmin=scale.log10_min,
+                           vmax=scale.log10_max, interpolation="nearest")
+            ax.set_title(name)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        bar = fig.colorbar(im, ax=axes, shrink=0.85, label="Young's modulus E")
+        ticks = scale.ticks(5)
+        bar.set_ticks([scale.log10_min + t * (scale.log10_max - scale.log10_min) for t, _, _ in ticks])
+        bar.set_ticklabels([label for _, _, label in ticks])
+        med = 10 ** float(np.median(vol[occ]))
+        fig.suptitle(f"{title}: material field at α = {float(a):g} (median E {format_pascal(med)})")
+        path = Path(out_dir) / f"field_alpha_{float(a):.2f}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths
