@@ -177,9 +177,15 @@ class Measurement:
                 raise _fail(src, "key 'rest_positions' contains NaN or infinite values")
             self.rest_positions = rest
         elif np.isnan(pos[0]).any():
-            missing = int(np.isnan(pos[0, :, 0]).sum())
-            raise _fail(src, f"key 'rest_positions' is missing and {missing} point(s) are unobserved in positions[0], "
-                             "so the rest shape is unknown; add 'rest_positions'")
+            missing = np.isnan(pos[0, :, 0])
+            never = missing & np.all(np.isnan(pos[..., 0]), axis=0)
+            if np.any(never) or np.all(missing):
+                raise _fail(src, f"key 'rest_positions' is missing and {int(missing.sum())} point(s) are unobserved in "
+                                 "positions[0] (some never observed at all), so the rest shape is unknown; add "
+                                 "'rest_positions'")
+            self.rest_positions = _reconstruct_rest(pos)
+            self.warnings.append(f"no 'rest_positions' and {int(missing.sum())} point(s) unobserved in positions[0]: "
+                                 "their rest positions were carried back rigidly from their first observation")
         # faces --------------------------------------------------------------------------
         if self.faces is not None:
             self.faces = _check_faces(self.faces, N, src, self.warnings)
@@ -331,6 +337,34 @@ def _float_array(value, key: str, src: str) -> np.ndarray:
     if arr.dtype.kind not in "fiu":
         raise _fail(src, f"key '{key}' must hold numbers, got dtype {arr.dtype}")
     return arr.astype(np.float64)
+
+
+def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t with R a + t ≈ b (Kabsch; translation only for < 3 points)."""
+    ca, cb = a.mean(0), b.mean(0)
+    if len(a) < 3:
+        return np.eye(3), cb - ca
+    H = (a - ca).T @ (b - cb)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cb - R @ ca
+
+
+def _reconstruct_rest(pos: np.ndarray) -> np.ndarray:
+    """Rest positions = positions[0], with points unobserved there carried back from their first
+    observation by the rigid motion of the points observed at both instants."""
+    rest = pos[0].copy()
+    obs = ~np.isnan(pos[..., 0])
+    for i in np.nonzero(~obs[0])[0]:
+        f = int(np.argmax(obs[:, i]))
+        both = obs[0] & obs[f]
+        if not np.any(both):
+            rest[i] = pos[f, i]
+            continue
+        R, t = _rigid_fit(pos[f, both], pos[0, both])  # maps instant f back onto instant 0
+        rest[i] = R @ pos[f, i] + t
+    return rest
 
 
 def _check_faces(faces, n_points: int, src: str, warnings: list) -> np.ndarray:

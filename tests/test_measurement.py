@@ -78,7 +78,8 @@ def test_roundtrip_keeps_everything(tmp_path):
     (lambda a: a.update(scenario=np.array(json.dumps({**SCEN, "material": {"E": 1e5}}))), "'material' lacks 'nu', 'density'"),
     (lambda a: a.update(scenario=np.array(json.dumps({**SCEN, "material": {"E": -1, "nu": 0.3, "density": 1}}))), "'E'"),
     (lambda a: a.update(E=np.ones(3)), "key 'E' must be a float array of shape \\(8,\\)"),
-    (lambda a: (a.pop("rest_positions"), a["positions"].__setitem__((0, 1), np.nan)), "'rest_positions' is missing"),
+    (lambda a: (a.pop("rest_positions"), a["positions"].__setitem__((slice(None), 1), np.nan)),
+     "'rest_positions' is missing"),
 ])
 def test_broken_files_are_refused_naming_the_key(tmp_path, change, key):
     rest, faces, t, pos = _arrays()
@@ -105,6 +106,20 @@ def test_failed_save_leaves_no_file(tmp_path):
     with pytest.raises(UserError, match="must end in .npz"):
         m.save(tmp_path / "m.txt")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_rest_shape_reconstructed_when_first_frame_is_occluded(tmp_path):
+    """No rest_positions and a point hidden at t0: carried back rigidly from its first observation."""
+    rest, faces, t, pos = _arrays(occlude=False)
+    theta = 0.3 * t  # rotating about z and translating
+    moved = np.empty_like(pos)
+    for k, a in enumerate(theta):
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        moved[k] = rest @ R.T + [0.2 * t[k], 0, -0.1 * t[k]]
+    moved[:3, 2] = np.nan
+    p = _write(tmp_path / "r.npz", positions=moved, times=t, scenario=np.array(json.dumps(SCEN)))
+    m = meas.load(p)
+    assert np.allclose(m.rest, rest, atol=1e-9) and any("carried back" in w for w in m.warnings)
 
 
 def test_per_point_material_and_defaults(tmp_path):

@@ -25,6 +25,7 @@ def add_arguments(p):
 
 
 def run(args) -> list[dict]:
+    import os
     import statistics
     import time
 
@@ -38,6 +39,7 @@ def run(args) -> list[dict]:
                          duration=1.0, fps=100.0, points=250, seed=1, device=device, settings=gen_settings)
     settings = parse_settings(args.setting) or None
     times, sims, found = [], [], []
+    load_before = os.getloadavg()[0]
     for _ in range(max(1, args.runs)):
         t0 = time.perf_counter()
         d = diagnose.diagnose(m, args.solver, max_additions=1, device=device, settings=settings)
@@ -50,4 +52,6 @@ def run(args) -> list[dict]:
             f"{'(correct)' if found[0] == expected else '(WRONG)'})")
     return [{"case": case, "device": device_description(device), "metric": "diagnosis_wall_s",
              "value": statistics.median(times), "runs": len(times), "unit": "s",
-             "all_runs_s": [round(t, 2) for t in times]}]
+             "all_runs_s": [round(t, 2) for t in times],
+             "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+             "note": "machine shared with other jobs: see load_average (1-minute, before/after)"}]

@@ -321,12 +321,29 @@ def _default_typical(p: fx.Param) -> float:
     return 1.0
 
 
-def base_param(lower: float = 0.05, upper: float = 20.0, center: float = 1.0) -> FreeParam:
-    """The base material's E/ρ scale as a free log parameter, with a weak prior at ``center``
-    (a factor of 10 away costs as much as one noise σ² — nothing against real data, but the
-    scale stays put when the motion does not depend on it, e.g. rigid free flight)."""
-    return FreeParam(BASE, "E_scale", 0, lower, upper, log=True, step=0.03, prior_width=math.log(10.0),
+def base_param(lower: float = 0.05, upper: float = 20.0, center: float = 1.0,
+               prior_width: float = math.log(10.0)) -> FreeParam:
+    """The base material's E/ρ scale as a free log parameter with a prior at ``center``.
+
+    prior_width: internal (log) units per σ of pseudo-residual — see :func:`e_prior_width`."""
+    return FreeParam(BASE, "E_scale", 0, lower, upper, log=True, step=0.03, prior_width=prior_width,
                      prior_center=math.log(center))
+
+
+E_PRIOR_SHARE = 0.1
+"""Changing E/ρ by a factor of 2 from its reference must buy this fraction of the noise floor's squared error."""
+
+
+def e_prior_width(observed_samples: int) -> float:
+    """Prior width (log units, per noise σ of pseudo-residual) on the E/ρ scale.
+
+    The motion depends on E/ρ through deformation; where it hardly does (rigid flight), an explicit
+    solver's time step still changes with E, and with it its time-integration error (millimetres in free
+    fall), which a free E would chase.  The prior makes a factor-2 change cost
+    ``E_PRIOR_SHARE`` × the noise floor's squared error (3 σ² per observed sample): nothing against a
+    material that is really off (that moves the error by many noise floors), enough to keep E put otherwise.
+    """
+    return math.log(2.0) / math.sqrt(E_PRIOR_SHARE * 3.0 * max(int(observed_samples), 1))
 
 
 def uncertainty(fit: FitResult, params: Sequence[FreeParam], sigma2: float) -> list[Optional[float]]:
