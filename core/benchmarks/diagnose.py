@@ -47,11 +47,12 @@ def run(args) -> list[dict]:
         sims.append(d.simulations)
         found.append(d.identified)
     expected = args.effect.split(":")[0]
-    case = (f"full diagnosis ({args.solver}, {m.frame_count} instants / {m.duration:g} s, {m.point_count} points, "
-            f"hidden {args.effect} made by {args.gen_solver}; {sims[0]} simulations; identified {found[0]} "
-            f"{'(correct)' if found[0] == expected else '(WRONG)'})")
+    case = (f"full diagnosis ({args.solver}{' ' + ','.join(args.setting) if args.setting else ''}, "
+            f"{m.frame_count} instants / {m.duration:g} s, {m.point_count} points, hidden {args.effect} made by "
+            f"{args.gen_solver}; baseline + every effect + one addition)")
     return [{"case": case, "device": device_description(device), "metric": "diagnosis_wall_s",
              "value": statistics.median(times), "runs": len(times), "unit": "s",
+             "simulations": sims[0], "identified": found[0], "correct": found[0] == expected,
              "all_runs_s": [round(t, 2) for t in times],
              "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
              "note": "machine shared with other jobs: see load_average (1-minute, before/after)"}]
