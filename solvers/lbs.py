@@ -24,11 +24,21 @@ potential::
     Φ(Z) = 1/(2dt²) ‖Z − Z_n − dt Ż_n‖²_M + Σ_c V_c Ψ(F_c(Z)) − f_ext·Z
            + ground penalty + clamp penalty + effect terms
 
-Ψ is fixed-corotated (:mod:`.lbs_kernels`, with its analytic PSD-projected Hessian).  The
-per-cubature-point energy, stress and 9×9 Hessian come from one Warp kernel; the reduction
-to the 132×132 system Σ_c Gᵀ H_c G is a dense contraction done by torch on the same
-device (a batched GEMM: what BLAS / cuBLAS do best), as are the small Cholesky solve and
-the 44-dimensional mass-matrix terms.  All environments of :meth:`run_batch` step together.
+Ψ is fixed-corotated (:mod:`.lbs_kernels`, with its analytic PSD-projected Hessian).
+
+**Where the work runs.**  Only what scales with the cubature points runs on the Warp device
+(:class:`_ElasticTerms`): one kernel forms F_c = I + Z G_c and evaluates the energy, stress
+and (at a step start) the 9×9 Hessian per point, and torch reduces them to handle space with
+GEMMs (Σ_c Gᵀ H_c G, 26 M multiply-adds for 500 points: what BLAS / cuBLAS do best).  The
+reduced problem — 132 unknowns — stays on the host in float64 numpy (:class:`_HostTerms`,
+:class:`_Factor`): inertia, drags, gravity, clamp, contact and friction, the 132×132 Cholesky
+solve and the line search's logic.  Each evaluation is then one upload of the candidate states,
+one kernel, a few GEMMs, one download and one synchronisation (3 per step at ~2 Newton
+iterations); the line search evaluates ``line_search_candidates`` step lengths per launch (4 on
+a GPU).  The state of every frame is kept (132 numbers) and the tracked points / vertices are
+computed after the stepping, one GEMM per chunk of frames.  ``meta["phase_seconds"]`` and
+``meta["evaluation_seconds"]`` tell where a run's time went.  All environments of
+:meth:`run_batch` step together.
 
 **Contact and clamp.**  The ground is a penalty ½ κ_c (h − z_p)₊² on the collision points
 with κ_c = ``contact_stiffness`` × (mass per collision point)/dt² (at rest the penetration is
@@ -61,7 +71,7 @@ points, 10 handles) for clamp_stiffness 0.3 / 1 / 3 / 10 / 100: 1.13 / 1.00 / 0.
 * ``stiffness_region`` factor: multiplies μ and λ of the cubature points in the region.
 
 **Output.**  Tracked points / vertices: x = X + Z a(X) with a(X) = w(X) ⊗ [X̂; 1],
-precomputed once (any number of points: one GEMM per frame).  ``handle_transforms``
+precomputed once (any number of points: one GEMM per chunk of frames).  ``handle_transforms``
 (T, H+1, 3, 4) are world-space: the first H are displacement transforms D_h and the last
 (the constant handle) is the full affine A = [I | 0] + D_H, so that
 x = A [X; 1] + Σ_{h<H} w_h(X) D_h [X; 1]; weights come from :func:`skinning.skinning_weights`
@@ -118,7 +128,14 @@ class LBSSettings:
     contact_stiffness / clamp_stiffness: dimensionless penalty factors (module docstring).
     friction_velocity: m/s, slip speed below which ground friction sticks.
     cache_skinning: reuse fitted parameters from the cache directory.
-    torch_threads: torch intra-op threads on the CPU while stepping (0 = leave torch's setting).
+    torch_threads: torch intra-op threads on the CPU while stepping — the host's Newton solve, and the
+        elastic terms on a CPU device (0 = leave torch's setting).
+    line_search_candidates: step lengths (1, 1/2, 1/4, ...) of the backtracking line search
+        evaluated together in one launch; the accepted length is the same as one at a time (the first
+        that satisfies the Armijo condition).  0 = automatic: 1 on the CPU (each costs a kernel's
+        work), 4 on a GPU (they cost one launch and one synchronisation).
+    profile_device: time the device phases of a GPU run with CUDA events (``meta["phase_seconds"]``;
+        adds a few microseconds per evaluation).  On the CPU they are always timed.
     """
 
     handles: int = skinning.DEFAULT_HANDLES
@@ -137,6 +154,8 @@ class LBSSettings:
     friction_velocity: float = 1e-3
     cache_skinning: bool = True
     torch_threads: int = 1
+    line_search_candidates: int = 0
+    profile_device: bool = False
 
     def __post_init__(self):
         for name in ("handles", "cubature_points", "mass_samples", "collision_points", "newton_iterations",
@@ -145,8 +164,11 @@ class LBSSettings:
             if not isinstance(val, (int, np.integer)) or val < 1:
                 raise UserError(f"LBS setting '{name}' must be a positive whole number, got {val!r}")
             setattr(self, name, int(val))
-        if not isinstance(self.fit_iterations, (int, np.integer)) or self.fit_iterations < 0:
-            raise UserError(f"LBS setting 'fit_iterations' must be a whole number >= 0, got {self.fit_iterations!r}")
+        for name in ("fit_iterations", "line_search_candidates"):
+            val = getattr(self, name)
+            if not isinstance(val, (int, np.integer)) or val < 0:
+                raise UserError(f"LBS setting '{name}' must be a whole number >= 0, got {val!r}")
+            setattr(self, name, int(val))
         for name in ("max_dt", "newton_tolerance", "contact_stiffness", "clamp_stiffness", "friction_velocity"):
             val = getattr(self, name)
             try:
@@ -214,6 +236,377 @@ def fitted_skinning(points: np.ndarray, volumes: np.ndarray, E: np.ndarray, nu: 
         np.save(tmp, params)
         tmp.replace(path)
     return params
+
+
+class _PhaseClock:
+    """Seconds spent per named phase, accumulated."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    def add(self, name: str, seconds: float) -> None:
+        self.seconds[name] = self.seconds.get(name, 0.0) + seconds
+
+
+def _host_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b on the host: numpy for tiny products, else torch's CPU BLAS (one thread inside a run).
+
+    numpy's OpenBLAS runs products above ~10⁴ multiply-adds (a 44 × 256 matrix-vector product
+    already) on its own thread pool, which stalls for milliseconds on a loaded machine.
+    """
+    if a.size * b.shape[-1] <= 8192:
+        return a @ b
+    import torch
+
+    return torch.matmul(torch.from_numpy(np.ascontiguousarray(a)), torch.from_numpy(np.ascontiguousarray(b))).numpy()
+
+
+class _Factor:
+    """Cholesky factors of R symmetric positive-definite systems A (R, N, N), on the host in float64.
+
+    Only the lower triangle of A is read.  A system whose factorisation fails gets a diagonal shift of
+    1e-8 × its largest diagonal entry.
+    """
+
+    def __init__(self, A: np.ndarray):
+        import torch
+
+        A = np.ascontiguousarray(A)
+        L, info = torch.linalg.cholesky_ex(torch.from_numpy(A))
+        bad = np.flatnonzero(info.numpy() != 0)
+        if len(bad):
+            shift = 1e-8 * np.abs(np.diagonal(A[bad], axis1=1, axis2=2)).max(axis=1)
+            shifted = A[bad] + shift[:, None, None] * np.eye(A.shape[1])
+            L[torch.from_numpy(bad)] = torch.linalg.cholesky_ex(torch.from_numpy(shifted))[0]
+        self.L = L
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """A⁻¹ b for right-hand sides b (R, ...) with N numbers each."""
+        import torch
+
+        rhs = torch.from_numpy(np.ascontiguousarray(b).reshape(len(b), -1, 1))
+        return torch.cholesky_solve(rhs, self.L).numpy().reshape(b.shape)
+
+
+class _HostTerms:
+    """The incremental potential's terms other than elasticity for one time step, on the host (numpy, float64).
+
+    Inertia ½/dt² ‖Z − Ẑ‖²_M, Rayleigh drag ½ c/dt ‖Z − Z_n‖²_M, quadratic drag ½/dt ‖Z − Z_n‖²_Mq,
+    −f_ext·Z, the clamp ½ κ_p ‖Z‖²_Mpin, the ground penalty ½ κ_c Σ (h − z_k)₊² and Coulomb friction
+    Σ μ N_k f0(|Δx_t,k|) (module docstring).  They reach the handle space only through (nA, nA)
+    matrices and the collision points' lifted basis (K, nA), so they cost microseconds and need no
+    device round trip.
+
+    Methods take state rows Z (R, 3, nA) and their environments env (R,) (indices into the (E, ...)
+    per-environment arrays).
+    """
+
+    def __init__(self, *, M, Mpin, kp, dt, Z_hat, Z_start, lin_drag, f_ext, Mq, Hconst, ground, kc, a_col, z_col,
+                 N_lag, mu_fric, eps):
+        self.M, self.Mpin, self.kp, self.dt = M, Mpin, kp, dt
+        self.Z_hat, self.Z_start, self.lin_drag, self.f_ext, self.Mq = Z_hat, Z_start, lin_drag, f_ext, Mq
+        self.Hconst, self.ground, self.kc, self.a_col, self.z_col = Hconst, ground, kc, a_col, z_col
+        self.N_lag, self.mu_fric, self.eps = N_lag, mu_fric, eps
+        self.a_col_T = np.ascontiguousarray(a_col.T)
+
+    def _friction(self, Z, env):
+        """Tangential slips (R, 2, K) m since the step start, f0 (R, K) and f1(y)/y (R, K) (IPC's C¹ smoothing)."""
+        eps = self.eps
+        ut = _host_matmul(Z[:, :2, :] - self.Z_start[env][:, :2, :], self.a_col_T)
+        y = np.sqrt(ut[:, 0] ** 2 + ut[:, 1] ** 2)
+        slipping = y >= eps
+        f0 = np.where(slipping, y, -y ** 3 / (3 * eps ** 2) + y ** 2 / eps + eps / 3)
+        f1_over_y = np.where(slipping, 1.0 / np.maximum(y, 1e-300), 2.0 / eps - y / eps ** 2)
+        return ut, f0, f1_over_y
+
+    def energy_gradient(self, Z: np.ndarray, env: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Φ without elasticity (R,) J and its gradient (R, 3, nA)."""
+        nA = Z.shape[2]
+        dt = self.dt
+        D = Z - self.Z_hat[env]
+        dZ = Z - self.Z_start[env]
+        DM = _host_matmul(D.reshape(-1, nA), self.M).reshape(D.shape)
+        dZM = _host_matmul(dZ.reshape(-1, nA), self.M).reshape(D.shape)
+        drag = self.lin_drag[env] / dt
+        fe = self.f_ext[env]
+        phi = (0.5 / dt ** 2 * np.einsum("ram,ram->r", DM, D) + 0.5 * drag * np.einsum("ram,ram->r", dZM, dZ)
+               - np.einsum("ram,ram->r", fe, Z))
+        grad = DM / dt ** 2 + drag[:, None, None] * dZM - fe
+        if self.Mpin is not None:
+            ZP = _host_matmul(Z.reshape(-1, nA), self.Mpin).reshape(Z.shape)
+            phi += 0.5 * self.kp * np.einsum("ram,ram->r", ZP, Z)
+            grad += self.kp * ZP
+        if self.Mq is not None:
+            dZMq = np.matmul(dZ, self.Mq[env])
+            phi += 0.5 / dt * np.einsum("ram,ram->r", dZMq, dZ)
+            grad += dZMq / dt
+        if self.ground is not None:
+            pen = np.maximum(self.ground - (self.z_col + _host_matmul(Z[:, 2, :], self.a_col_T)), 0.0)   # (R, K) m
+            phi += 0.5 * self.kc * np.einsum("rk,rk->r", pen, pen)
+            grad[:, 2, :] -= self.kc * _host_matmul(pen, self.a_col)
+            if self.mu_fric is not None:
+                ut, f0, f1_over_y = self._friction(Z, env)
+                coef = self.mu_fric[env][:, None] * self.N_lag[env]                          # (R, K) N
+                phi += np.einsum("rk,rk->r", coef, f0)
+                grad[:, :2, :] += _host_matmul((coef * f1_over_y)[:, None, :] * ut, self.a_col)
+        return phi, grad
+
+    def add_hessian(self, hess: np.ndarray, Z: np.ndarray, env: np.ndarray) -> None:
+        """Add the Hessian of the same terms at Z to ``hess`` (R, 3nA, 3nA) in place (contact: the active set
+        at Z; friction: lagged normal force, IPC's f1/y weight)."""
+        R, _, nA = Z.shape
+        blocks = hess.reshape(R, 3, nA, 3, nA)
+        blk = self.Hconst[env]
+        if self.Mq is not None:
+            blk = blk + self.Mq[env] / self.dt
+        for a in range(3):
+            blocks[:, a, :, a, :] += blk
+        if self.ground is None:
+            return
+        act = self.z_col + _host_matmul(Z[:, 2, :], self.a_col_T) < self.ground          # (R, K)
+        w_fric = None
+        if self.mu_fric is not None:
+            _, _, f1_over_y = self._friction(Z, env)
+            w_fric = self.mu_fric[env][:, None] * self.N_lag[env] * f1_over_y              # (R, K)
+        for r in range(R):
+            touching = np.flatnonzero(act[r])
+            if len(touching):
+                a_t = self.a_col[touching]
+                blocks[r, 2, :, 2, :] += self.kc * _host_matmul(a_t.T, a_t)
+            if w_fric is not None:
+                loaded = np.flatnonzero(w_fric[r])
+                if len(loaded):
+                    a_s = self.a_col[loaded]
+                    Bf = _host_matmul(a_s.T * w_fric[r, loaded], a_s)
+                    blocks[r, 0, :, 0, :] += Bf
+                    blocks[r, 1, :, 1, :] += Bf
+
+
+class _ElasticTerms:
+    """The elastic (cubature) part of the incremental potential, evaluated on the simulation's Warp device.
+
+    Everything that scales with the cubature points stays on the device.  One evaluation of R
+    candidate states uploads them (R × 3 × nA numbers) with their environment indices, runs one Warp
+    kernel (:func:`.lbs_kernels.elastic_terms`: F = I + Z G_c, Ψ, stress and, at a step start, the
+    projected 9×9 Hessian per cubature point), reduces to handle space with torch GEMMs
+    (gradient Σ_c P_c G_cᵀ; Hessian Σ_c G_cᵀ H_c G_c) and downloads Σ_c V_c Ψ_c (R,), the gradient
+    (R, 3, nA) and the Hessian (E, 3nA, 3nA): one synchronisation per evaluation, all buffers
+    allocated once (pinned host staging on a GPU; on the CPU the host arrays are the device's).
+
+    mu, lam: (E, C) Pa.  yield_stress: (E, C) Pa (1e301 = none) or None without plasticity.
+    ``seconds`` accumulates per-phase times (CPU: wall; GPU: CUDA events when ``profile``, else only
+    the host's wait); ``counts`` the evaluations.
+    """
+
+    def __init__(self, sim, mu: np.ndarray, lam: np.ndarray, yield_stress, max_rows: int, profile: bool,
+                 staged: Optional[bool] = None):
+        import torch
+
+        from . import lbs_kernels as K
+
+        wp = sim._wp
+        self.torch = torch
+        dev = _torch_device(sim.device)
+        self.cuda = dev != "cpu"
+        self.profile = bool(profile) and self.cuda
+        # separate host staging buffers and copies (a GPU; on the CPU only to test that path)
+        self.staged = self.cuda if staged is None else bool(staged)
+        E_env, C = mu.shape
+        nA = sim.n_basis
+        self.E, self.C, self.nA, self.max_rows = E_env, C, nA, max_rows
+        f64 = torch.float64
+
+        def zeros(*shape, dtype=f64):
+            return torch.zeros(*shape, dtype=dtype, device=dev)
+
+        def dev_tensor(a):
+            return torch.as_tensor(np.ascontiguousarray(a, np.float64), device=dev)
+
+        G = dev_tensor(sim.cubature_G)                                      # (C, nA, 3) 1/m
+        self.Gr = G.permute(0, 2, 1).reshape(3 * C, nA).contiguous()        # [(c, b), m]
+        self.GrT = self.Gr.T.contiguous()                                   # [m, (c, b)]
+        self.Gt = G.transpose(1, 2).contiguous()                            # (C, 3, nA)
+        self.Z_rows = zeros(max_rows, 3, nA)
+        self.env_rows = zeros(max_rows, dtype=torch.int32)
+        self.Z_start = zeros(E_env, 3, nA)
+        self.Z_plastic = zeros(E_env, 3, nA)
+        self.visc = zeros(E_env)
+        self.psi = zeros(max_rows, C)
+        self.P = zeros(max_rows, 3, 3 * C)
+        self.H = zeros(E_env, 3, C, 27)
+        self.T1 = zeros(E_env, 3, C, 9, nA)
+        self.result = zeros(max_rows * (3 * nA + 1))
+        self.hessian = zeros(E_env, 3 * nA, 3 * nA)
+        plastic_inv = torch.eye(3, dtype=f64, device=dev).repeat(E_env, C, 1, 1).contiguous()
+        mu_t, lam_t, vol_t = dev_tensor(mu), dev_tensor(lam), dev_tensor(sim.cubature_volume)
+        if self.staged:
+            def host(t):
+                return torch.empty(t.shape, dtype=t.dtype, pin_memory=self.cuda)
+
+            self.h_Z_rows, self.h_env_rows = host(self.Z_rows), host(self.env_rows)
+            self.h_Z_start, self.h_Z_plastic, self.h_visc = host(self.Z_start), host(self.Z_plastic), host(self.visc)
+            self.h_result, self.h_hessian = host(self.result), host(self.hessian)
+        else:
+            self.h_Z_rows, self.h_env_rows = self.Z_rows, self.env_rows
+            self.h_Z_start, self.h_Z_plastic, self.h_visc = self.Z_start, self.Z_plastic, self.visc
+            self.h_result, self.h_hessian = self.result, self.hessian
+        self.stream = None
+        if self.cuda:
+            self.torch_stream = torch.cuda.current_stream(dev)
+            self.stream = wp.stream_from_torch(self.torch_stream)
+        self.n_Z_rows, self.n_env_rows = self.h_Z_rows.numpy(), self.h_env_rows.numpy()
+        self.n_Z_start, self.n_Z_plastic, self.n_visc = self.h_Z_start.numpy(), self.h_Z_plastic.numpy(), self.h_visc.numpy()
+        self.n_result, self.n_hessian = self.h_result.numpy(), self.h_hessian.numpy()
+
+        def warp(t, dtype=wp.float64):
+            return wp.from_torch(t, dtype=dtype)
+
+        self._keep = (mu_t, lam_t, vol_t, plastic_inv)
+        self.launch = wp.launch(K.elastic_terms, dim=(max_rows, C),
+                                inputs=[warp(self.Z_rows), warp(self.env_rows, wp.int32), warp(self.Z_start), warp(G),
+                                        warp(plastic_inv, wp.mat33d), warp(mu_t), warp(lam_t), warp(vol_t),
+                                        warp(self.visc), 0, warp(self.psi), warp(self.P), warp(self.H)],
+                                device=sim.device, stream=self.stream, record_cmd=True)
+        self.need_index = [a.label for a in K.elastic_terms.adj.args].index("need")
+        self._launch_shape = (max_rows, 0)
+        self.plastic_launch = None
+        if yield_stress is not None:
+            ys_t = dev_tensor(yield_stress)
+            self._keep = self._keep + (ys_t,)
+            self.plastic_launch = wp.launch(K.return_map, dim=(E_env, C),
+                                            inputs=[warp(self.Z_plastic), warp(G), warp(plastic_inv, wp.mat33d),
+                                                    warp(mu_t), warp(ys_t)],
+                                            device=sim.device, stream=self.stream, record_cmd=True)
+        self.symmetric_reduction = not self.cuda
+        self.seconds: dict[str, float] = {}
+        self.counts = {"hessian": 0, "trial": 0, "trial_rows": 0}
+        self._events: list = []
+        self._t = 0.0
+
+    # -- timing ---------------------------------------------------------------------------------
+    def _mark(self, name: str) -> None:
+        """End of a phase: CUDA event on a profiled GPU run, wall clock on the CPU (where work is synchronous)."""
+        if self.cuda:
+            if self.profile:
+                ev = self.torch.cuda.Event(enable_timing=True)
+                ev.record(self.torch_stream)
+                self._events.append((name, ev))
+            return
+        t = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + (t - self._t)
+        self._t = t
+
+    def _start_phases(self) -> None:
+        self._t = time.perf_counter()
+        if self.profile:
+            ev = self.torch.cuda.Event(enable_timing=True)
+            ev.record(self.torch_stream)
+            self._events = [("", ev)]
+
+    def _collect_events(self) -> None:
+        if not self._events:
+            return
+        prev = self._events[0][1]
+        for name, ev in self._events[1:]:
+            self.seconds[name] = self.seconds.get(name, 0.0) + 1e-3 * prev.elapsed_time(ev)
+            prev = ev
+        self._events = []
+
+    def synchronize(self) -> None:
+        if self.cuda:
+            t = time.perf_counter()
+            self.torch_stream.synchronize()
+            self.seconds["wait"] = self.seconds.get("wait", 0.0) + time.perf_counter() - t
+            self._collect_events()
+
+    # -- work -----------------------------------------------------------------------------------
+    def set_viscosity(self, visc: np.ndarray) -> None:
+        """η/dt (E,) Pa of the Kelvin–Voigt term for the coming steps."""
+        if np.array_equal(self.n_visc, visc):
+            return
+        self.synchronize()   # the staging buffer may still feed an earlier copy
+        self.n_visc[:] = visc
+        if self.staged:
+            self.visc.copy_(self.h_visc, non_blocking=True)
+
+    def evaluate(self, Z: np.ndarray, env: np.ndarray, hessian: bool = False, Z_start: Optional[np.ndarray] = None):
+        """Elastic energy (R,) J, gradient (R, 3, nA) and, with ``hessian``, Hessian (R, 3nA, 3nA) of states Z.
+
+        Z: (R, 3, nA) rows; env: (R,) their environments.  ``hessian`` needs env = 0..E−1 in order.
+        Z_start: (E, 3, nA), the step start (viscous F_n); give it at the first evaluation of each step.
+        """
+        torch = self.torch
+        R, C, nA = len(Z), self.C, self.nA
+        if R > self.max_rows or (hessian and R != self.E):
+            raise ValueError(f"{R} rows do not fit the LBS elastic buffers")
+        self._start_phases()
+        self.n_Z_rows[:R] = Z
+        self.n_env_rows[:R] = env
+        if Z_start is not None:
+            self.n_Z_start[:] = Z_start
+        if self.staged:
+            self.Z_rows[:R].copy_(self.h_Z_rows[:R], non_blocking=True)
+            self.env_rows[:R].copy_(self.h_env_rows[:R], non_blocking=True)
+            if Z_start is not None:
+                self.Z_start.copy_(self.h_Z_start, non_blocking=True)
+        self._mark("upload")
+        need = 2 if hessian else 1
+        if (R, need) != self._launch_shape:
+            self.launch.set_dim((R, C))
+            self.launch.set_param_at_index(self.need_index, need)
+            self._launch_shape = (R, need)
+        self.launch.launch(self.stream)
+        self._mark("kernel_hessian" if hessian else "kernel_trial")
+        n_grad = 3 * R * nA
+        torch.mm(self.P[:R].view(3 * R, 3 * C), self.Gr, out=self.result[:n_grad].view(3 * R, nA))
+        torch.sum(self.psi[:R], dim=1, out=self.result[n_grad:n_grad + R])
+        self._mark("reduction_gradient")
+        if hessian:
+            self._reduce_hessian()
+            self._mark("reduction_hessian")
+        if self.staged:
+            self.h_result[:n_grad + R].copy_(self.result[:n_grad + R], non_blocking=True)
+            if hessian:
+                self.h_hessian.copy_(self.hessian, non_blocking=True)
+            self._mark("download")
+        self.synchronize()
+        self.counts["hessian" if hessian else "trial"] += 1
+        if not hessian:
+            self.counts["trial_rows"] += R
+        energy = self.n_result[n_grad:n_grad + R].copy()
+        grad = self.n_result[:n_grad].reshape(R, 3, nA).copy()
+        if not hessian:
+            return energy, grad
+        return energy, grad, self.n_hessian.copy()
+
+    def _reduce_hessian(self) -> None:
+        """hessian[e] = Σ_c G_cᵀ H_c G_c (3nA × 3nA), from the kernel's H: two GEMMs.
+
+        T1[e, a, c, (b x), n] = Σ_y H[e, a, c, (b x y)] G[c, n, y]; then per block row a,
+        K[(a m), (x n)] = Σ_(c b) G[c, m, b] T1[e, a, (c b), (x n)].  With ``symmetric_reduction`` (the
+        CPU) only the blocks x >= a are multiplied (a third less work) and the others are filled from
+        the symmetry; on a GPU one GEMM does all (fewer launches).
+        """
+        torch = self.torch
+        E_env, C, nA = self.E, self.C, self.nA
+        torch.matmul(self.H.view(E_env, 3, C, 9, 3), self.Gt, out=self.T1)
+        T1 = self.T1.view(E_env, 3, 3 * C, 3 * nA)
+        K4 = self.hessian.view(E_env, 3, nA, 3 * nA)
+        if not self.symmetric_reduction:
+            torch.matmul(self.GrT, T1, out=K4)
+            return
+        for a in range(3):
+            K4[:, a, :, a * nA:] = torch.matmul(self.GrT, T1[:, a, :, a * nA:])
+        for a in range(3):
+            for x in range(a + 1, 3):
+                K4[:, x, :, a * nA:(a + 1) * nA] = K4[:, a, :, x * nA:(x + 1) * nA].transpose(1, 2)
+
+    def return_map(self, Z: np.ndarray) -> None:
+        """Plastic return mapping at the accepted states Z (E, 3, nA) (updates F_p on the device)."""
+        self.n_Z_plastic[:] = Z
+        if self.staged:
+            self.Z_plastic.copy_(self.h_Z_plastic, non_blocking=True)
+        self.plastic_launch.launch(self.stream)
 
 
 class LBSSimulation(Simulation):
@@ -294,6 +687,7 @@ class LBSSimulation(Simulation):
             self.skinning_fitted = True
         self._setup_basis(pinned)
         self._wp = init_warp()
+        self._device_copies: dict = {}
 
     # ------------------------------------------------------------------------------ basis
     def weights(self, points: np.ndarray) -> np.ndarray:
@@ -360,13 +754,14 @@ class LBSSimulation(Simulation):
         return np.asarray(points, np.float64) + self.lifted(points) @ np.asarray(Z, np.float64).T
 
     def handle_transforms(self, Z: np.ndarray) -> np.ndarray:
-        """World-space handle transforms (H+1, 3, 4) from the state Z (3, 4(H+1)) (module docstring)."""
+        """World-space handle transforms (..., H+1, 3, 4) from states Z (..., 3, 4(H+1)) (module docstring)."""
         H = self.handles
-        Zh = np.asarray(Z, np.float64).reshape(3, H + 1, 4).transpose(1, 0, 2)   # (H+1, 3, 4)
-        lin = Zh[:, :, :3] / self.extent
-        trans = Zh[:, :, 3] - lin @ self.centre
-        D = np.concatenate([lin, trans[:, :, None]], axis=2)
-        D[H, :, :3] += np.eye(3)
+        Z = np.asarray(Z, np.float64)
+        Zh = Z.reshape(Z.shape[:-2] + (3, H + 1, 4)).swapaxes(-3, -2)     # (..., H+1, 3, 4)
+        lin = Zh[..., :3] / self.extent
+        trans = Zh[..., 3] - lin @ self.centre
+        D = np.concatenate([lin, trans[..., None]], axis=-1)
+        D[..., H, :, :3] += np.eye(3)
         return D
 
     # ------------------------------------------------------------------------------ running
@@ -374,259 +769,197 @@ class LBSSimulation(Simulation):
                    particle_states: bool) -> list[Trajectory]:
         if not terms_list:
             return []
-        with torch_threads(self.settings.torch_threads if self.device == "cpu" else 0):
+        # the host's Newton solve uses torch on the CPU whatever the device: small tensors, one thread
+        with torch_threads(self.settings.torch_threads):
             return self._run(terms_list, progress, particle_states)
 
     def _run(self, terms_list, progress, particle_states):
         import torch
 
-        wp = self._wp
-        from . import lbs_kernels as K
-
         st = self.settings
-        dev = _torch_device(self.device)
-        f64 = torch.float64
+        clock = _PhaseClock()
+        t_begin = time.perf_counter()
         E_env = len(terms_list)
         H1 = self.handles + 1
         nA = 4 * H1
         C = len(self.cubature_rest)
         T = len(self.frame_times)
-        tt = lambda a: torch.as_tensor(np.asarray(a), dtype=f64, device=dev)  # noqa: E731
-        M = tt(self.mass_matrix)
-        Mpin = tt(self.pin_matrix)
-        G = tt(self.cubature_G)                                             # (C, nA, 3)
-        Gt = G.transpose(1, 2).contiguous()                                 # (C, 3, nA)
-        GrT = G.permute(0, 2, 1).reshape(3 * C, nA).T.contiguous()          # (nA, [c b])
-        vol = tt(self.cubature_volume)
-        a_col = tt(self._a_col)                                             # (K, nA)
-        z_col = tt(self.collision_rest[:, 2] - self.contact_offset)
-        xy_col = tt(self.collision_rest[:, :2])
-        a_fill = tt(self._a_fill)
-        m_fill = tt(self.mass)
+        envs = np.arange(E_env)
+        M = self.mass_matrix
+        Mpin = self.pin_matrix
+        clamp = bool(np.any(self.pinned_fill))
+        a_col = self._a_col                                                  # (K, nA)
+        z_col = self.collision_rest[:, 2] - self.contact_offset
         # per-environment physics
         scale = np.stack([t.E_multiplier(C) for t in terms_list])          # (E, C)
         E_pts = self.cubature_E[None] * scale
         nu = self.cubature_nu[None]
-        mu = tt(E_pts / (2 * (1 + nu)))
-        lam = tt(E_pts * nu / ((1 + nu) * (1 - 2 * nu)))
+        mu = E_pts / (2 * (1 + nu))
+        lam = E_pts * nu / ((1 + nu) * (1 - 2 * nu))
         ys = np.stack([np.minimum(self.class_yield, t.yield_stress) for t in terms_list])
         plastic = bool(np.any(np.isfinite(ys)))
-        ys_t = tt(np.where(np.isfinite(ys), ys, 1e301))
         accel = np.stack([self.scenario.gravity + t.extra_acceleration for t in terms_list])   # (E, 3)
-        f_ext = tt(accel[:, :, None] * self.mass_moment[None, None, :])    # (E, 3, nA)
-        lin_drag = tt([t.linear_drag for t in terms_list])
-        quad_drag = tt([t.quadratic_drag for t in terms_list])
-        eta = tt([t.damping_eta for t in terms_list])
-        mu_fric = tt([t.friction_mu for t in terms_list])
-        any_quad = bool(np.any([t.quadratic_drag > 0 for t in terms_list]))
-        any_fric = bool(np.any([t.friction_mu > 0 for t in terms_list]))
+        f_ext = accel[:, :, None] * self.mass_moment[None, None, :]        # (E, 3, nA)
+        lin_drag = np.array([t.linear_drag for t in terms_list], np.float64)
+        quad_drag = np.array([t.quadratic_drag for t in terms_list], np.float64)
+        eta = np.array([t.damping_eta for t in terms_list], np.float64)
+        mu_fric = np.array([t.friction_mu for t in terms_list], np.float64)
+        any_quad = bool(np.any(quad_drag > 0))
+        any_fric = bool(np.any(mu_fric > 0))
         ground = self.scenario.ground_height
-        # state
-        Z = torch.zeros(E_env, 3, nA, dtype=f64, device=dev)
-        V = torch.zeros(E_env, 3, nA, dtype=f64, device=dev)
-        V[:, :, (H1 - 1) * 4:] = tt(self._initial_affine_velocity())
-        Fp_inv = torch.eye(3, dtype=f64, device=dev).repeat(E_env, C, 1, 1).contiguous()
-        # output buffers (host)
-        n_track = len(self.tracked_rest)
-        out_track = np.zeros((E_env, T, n_track, 3), np.float32)
-        out_handles = np.zeros((E_env, T, H1, 3, 4), np.float32)
-        out_cub = np.zeros((E_env, T, C, 3), np.float32) if particle_states else None
-        a_track = torch.as_tensor(self._a_track, dtype=torch.float32, device=dev)
-        x_track = torch.as_tensor(self.tracked_rest, dtype=torch.float32, device=dev)
-        a_cub = torch.as_tensor(self._a_cub, dtype=torch.float32, device=dev)
-        x_cub = torch.as_tensor(self.cubature_rest, dtype=torch.float32, device=dev)
-        # warp buffers viewing torch memory
-        psi_t = torch.zeros(E_env, C, dtype=f64, device=dev)
-        P_t = torch.zeros(E_env, C, 3, 3, dtype=f64, device=dev)
-        H_t = torch.zeros(E_env, 3, C, 27, dtype=f64, device=dev)
-        w_psi = wp.from_torch(psi_t, dtype=wp.float64)
-        w_P = wp.from_torch(P_t, dtype=wp.mat33d)
-        w_H = wp.from_torch(H_t, dtype=wp.float64)
-        w_mu = wp.from_torch(mu.contiguous(), dtype=wp.float64)
-        w_lam = wp.from_torch(lam.contiguous(), dtype=wp.float64)
-        w_vol = wp.from_torch(vol.contiguous(), dtype=wp.float64)
-        w_Fp = wp.from_torch(Fp_inv, dtype=wp.mat33d)
-        w_ys = wp.from_torch(ys_t.contiguous(), dtype=wp.float64)
-        stream = wp.stream_from_torch(torch.cuda.current_stream(dev)) if dev != "cpu" else None
-        eye3 = torch.eye(3, dtype=f64, device=dev)
-
-        def deformation(Zc):
-            return (eye3 + torch.einsum("eam,cmb->ecab", Zc, G)).contiguous()
-
-        def elastic(Zc, F_prev, visc, need):
-            F = deformation(Zc)
-            wF = wp.from_torch(F, dtype=wp.mat33d)
-            wFn = wp.from_torch(F_prev, dtype=wp.mat33d)
-            w_visc = wp.from_torch(visc.contiguous(), dtype=wp.float64)
-            wp.launch(K.elastic_terms, dim=(E_env, C), inputs=[wF, wFn, w_Fp, w_mu, w_lam, w_vol, w_visc, need,
-                                                                 w_psi, w_P, w_H], device=self.device, stream=stream)
-            return F
-
-        def record(frame):
-            Zf = Z.to(torch.float32)
-            pos = x_track[None] + torch.einsum("eam,nm->ena", Zf, a_track)
-            out_track[:, frame] = pos.cpu().numpy()
-            Zh = Z.cpu().numpy()
-            for e in range(E_env):
-                out_handles[e, frame] = self.handle_transforms(Zh[e])
-            if out_cub is not None:
-                out_cub[:, frame] = (x_cub[None] + torch.einsum("eam,nm->ena", Zf, a_cub)).cpu().numpy()
-
-        record(0)
-        t_start = time.perf_counter()
+        on_cpu = self.device == "cpu"
+        candidates = st.line_search_candidates or (1 if on_cpu else 4)
+        candidates = min(candidates, st.line_search_steps)
+        elastic = _ElasticTerms(self, mu, lam, np.where(np.isfinite(ys), ys, 1e301) if plastic else None,
+                                max_rows=max(E_env * candidates, E_env), profile=st.profile_device)
+        if any_quad:
+            a_fill_t = torch.as_tensor(self._a_fill)                        # host (P, nA)
+            m_fill = self.mass
+        # state (host, float64)
+        Z = np.zeros((E_env, 3, nA))
+        V = np.zeros((E_env, 3, nA))
+        V[:, :, (H1 - 1) * 4:] = self._initial_affine_velocity()
+        Z_frames = np.zeros((T, E_env, 3, nA))
         steps = 0
         newton_total = 0
         extent = self.extent
+        tolerance = st.newton_tolerance * extent
+        clock.add("set_up", time.perf_counter() - t_begin)
+        t_start = time.perf_counter()
         for f in range(1, T):
             interval = self.frame_times[f] - self.frame_times[f - 1]
             n_sub = max(1, math.ceil(interval / st.max_dt - 1e-9))
             dt = interval / n_sub
             kc = st.contact_stiffness * self.total_mass / len(self.collision_rest) / dt ** 2
             kp = st.clamp_stiffness * self.elastic_rate2
-            visc = eta / dt
-            Hconst = (M / dt ** 2)[None] * (1.0 + dt * lin_drag)[:, None, None] + kp * Mpin[None]   # (E, nA, nA)
+            elastic.set_viscosity(eta / dt)
+            Hconst = (M / dt ** 2)[None] * (1.0 + dt * lin_drag)[:, None, None]   # (E, nA, nA)
+            if clamp:
+                Hconst = Hconst + kp * Mpin[None]
             for _ in range(n_sub):
-                Zn = Z.clone()
+                t0 = time.perf_counter()
+                Zn = Z
                 Z_hat = Zn + dt * V
-                Fn = deformation(Zn)
                 # lagged quantities of the step
+                Mq = None
                 if any_quad:
-                    vel = torch.einsum("eam,pm->epa", V, a_fill)
-                    speed = torch.linalg.norm(vel, dim=2)                         # (E, P)
-                    Mq = torch.einsum("p,ep,pi,pj->eij", m_fill, quad_drag[:, None] * speed, a_fill, a_fill)
-                else:
-                    Mq = None
+                    Mq = np.zeros((E_env, nA, nA))
+                    for e in np.flatnonzero(quad_drag > 0):
+                        speed = np.linalg.norm(_host_matmul(V[e], self._a_fill.T), axis=0)   # (P,) m/s
+                        wq = torch.as_tensor(m_fill * quad_drag[e] * speed)
+                        Mq[e] = (a_fill_t.T * wq).matmul(a_fill_t).numpy()
+                N_lag = None
                 if ground is not None:
-                    zc = z_col[None] + Zn[:, 2, :] @ a_col.T
-                    N_lag = kc * torch.clamp(ground - zc, min=0.0)               # (E, K) N
-                else:
-                    N_lag = None
-
-                def objective(Zc, need):
-                    """Φ (E,) and, with need >= 1, its gradient (E, 3, nA); need == 2 also leaves the
-                    cubature points' 9×9 Hessians in H_t for :func:`elastic_hessian`."""
-                    elastic(Zc, Fn, visc, need)
-                    D = Zc - Z_hat
-                    phi = 0.5 / dt ** 2 * torch.einsum("eam,mn,ean->e", D, M, D) + psi_t.sum(1)
-                    dZ = Zc - Zn
-                    phi = phi + 0.5 * lin_drag / dt * torch.einsum("eam,mn,ean->e", dZ, M, dZ)
-                    phi = phi - torch.einsum("eam,eam->e", f_ext, Zc)
-                    phi = phi + 0.5 * kp * torch.einsum("eam,mn,ean->e", Zc, Mpin, Zc)
-                    grad = None
-                    if need >= 1:
-                        grad = (D @ M) / dt ** 2 + lin_drag[:, None, None] / dt * (dZ @ M) - f_ext + kp * (Zc @ Mpin)
-                        grad = grad + torch.einsum("ecab,cmb->eam", P_t, G)
-                    if Mq is not None:
-                        phi = phi + 0.5 / dt * torch.einsum("eam,emn,ean->e", dZ, Mq, dZ)
-                        if need >= 1:
-                            grad = grad + torch.einsum("eam,emn->ean", dZ, Mq) / dt
-                    if ground is not None:
-                        zc = z_col[None] + Zc[:, 2, :] @ a_col.T                 # (E, K)
-                        pen = torch.clamp(ground - zc, min=0.0)
-                        phi = phi + 0.5 * kc * torch.sum(pen * pen, dim=1)
-                        if need >= 1:
-                            grad[:, 2, :] -= kc * pen @ a_col
-                        if any_fric:
-                            ut, y, f0, f1_over_y = friction_terms(Zc)
-                            coef = mu_fric[:, None] * N_lag
-                            phi = phi + torch.sum(coef * f0, dim=1)
-                            if need >= 1:
-                                grad[:, :2, :] += torch.einsum("ek,eka,km->eam", coef * f1_over_y, ut, a_col)
-                    return phi, grad
-
-                def friction_terms(Zc):
-                    eps = st.friction_velocity * dt
-                    ut = torch.einsum("eam,km->eka", Zc[:, :2, :] - Zn[:, :2, :], a_col)     # (E, K, 2) slip
-                    y = torch.linalg.norm(ut, dim=2)
-                    f0 = torch.where(y >= eps, y, -y ** 3 / (3 * eps ** 2) + y ** 2 / eps + eps / 3)
-                    f1_over_y = torch.where(y >= eps, 1.0 / torch.clamp(y, min=1e-300), 2.0 / eps - y / eps ** 2)
-                    return ut, y, f0, f1_over_y
-
-                def elastic_hessian():
-                    """Σ_c G_cᵀ H_c G_c from the last need == 2 evaluation: two batched GEMMs, (E, 3, nA, 3, nA)."""
-                    T1 = torch.matmul(H_t.view(E_env, 3, C, 9, 3), Gt)                 # (E, a, c, [b x], n)
-                    return torch.matmul(GrT, T1.view(E_env, 3, 3 * C, 3 * nA)).view(E_env, 3, nA, 3, nA)
-
-                def cheap_hessian(Zc):
-                    """Inertia, drags, clamp, contact and friction blocks at Zc (cheap: 44×44 blocks)."""
-                    hess = torch.zeros(E_env, 3, nA, 3, nA, dtype=f64, device=dev)
-                    blk = Hconst if Mq is None else Hconst + Mq / dt
-                    for a in range(3):
-                        hess[:, a, :, a, :] += blk
-                    if ground is not None:
-                        zc = z_col[None] + Zc[:, 2, :] @ a_col.T
-                        act = (zc < ground).to(f64)
-                        hess[:, 2, :, 2, :] += kc * torch.einsum("ek,ki,kj->eij", act, a_col, a_col)
-                        if any_fric:
-                            _, _, _, f1_over_y = friction_terms(Zc)
-                            Bf = torch.einsum("ek,ki,kj->eij", mu_fric[:, None] * N_lag * f1_over_y, a_col, a_col)
-                            hess[:, 0, :, 0, :] += Bf
-                            hess[:, 1, :, 1, :] += Bf
-                    return hess
-
-                active = torch.ones(E_env, dtype=torch.bool, device=dev)
-                Z = Z_hat.clone()
-                phi0, grad = objective(Z, 2)
-                H_el = elastic_hessian()
+                    N_lag = kc * np.maximum(ground - (z_col[None] + _host_matmul(Zn[:, 2, :], a_col.T)), 0.0)  # (E, K) N
+                terms = _HostTerms(M=M, Mpin=Mpin if clamp else None, kp=kp, dt=dt, Z_hat=Z_hat, Z_start=Zn,
+                                   lin_drag=lin_drag, f_ext=f_ext, Mq=Mq, Hconst=Hconst, ground=ground, kc=kc,
+                                   a_col=a_col, z_col=z_col, N_lag=N_lag,
+                                   mu_fric=mu_fric if any_fric else None, eps=st.friction_velocity * dt)
+                clock.add("host_terms", time.perf_counter() - t0)
+                # step start: elastic energy, gradient and Hessian at the predictor
+                t0 = time.perf_counter()
+                psi, g_el, K_el = elastic.evaluate(Z_hat, envs, hessian=True, Z_start=Zn)
+                t1 = time.perf_counter()
+                clock.add("hessian_evaluation", t1 - t0)
+                phi_h, grad_h = terms.energy_gradient(Z_hat, envs)
+                phi = psi + phi_h
+                grad = g_el + grad_h
+                Z = Z_hat.copy()
+                active = np.ones(E_env, bool)
+                clock.add("host_terms", time.perf_counter() - t1)
                 for it in range(st.newton_iterations):
                     if it > 0 and not st.reuse_hessian:
-                        phi0, grad = objective(Z, 2)
-                        H_el = elastic_hessian()
-                    Hm = (H_el + cheap_hessian(Z)).reshape(E_env, 3 * nA, 3 * nA)
-                    Hm = 0.5 * (Hm + Hm.transpose(1, 2))
-                    L, info = torch.linalg.cholesky_ex(Hm)
-                    if bool(torch.any(info != 0)):
-                        shift = 1e-8 * torch.diagonal(Hm, dim1=1, dim2=2).abs().max(dim=1).values
-                        L, info = torch.linalg.cholesky_ex(Hm + shift[:, None, None]
-                                                           * torch.eye(3 * nA, dtype=f64, device=dev))
-                    g = grad.reshape(E_env, 3 * nA, 1)
-                    step = -torch.cholesky_solve(g, L).reshape(E_env, 3, nA)
-                    step = torch.where(active[:, None, None], step, torch.zeros_like(step))
-                    slope = torch.einsum("eam,eam->e", grad, step)
-                    alpha = torch.ones(E_env, dtype=f64, device=dev)
-                    accepted = ~active
-                    phi_new, grad_new = phi0.clone(), grad.clone()
-                    for _ls in range(st.line_search_steps):
-                        trial = Z + alpha[:, None, None] * step
-                        # the trial's gradient comes with its energy: an accepted trial starts the next iteration
-                        phi_t, grad_t = objective(trial, 1)
-                        ok = phi_t <= phi0 + 1e-4 * alpha * slope + 1e-12 * phi0.abs()
-                        newly = ok & ~accepted
-                        Z = torch.where(newly[:, None, None], trial, Z)
-                        phi_new = torch.where(newly, phi_t, phi_new)
-                        grad_new = torch.where(newly[:, None, None], grad_t, grad_new)
-                        accepted = accepted | ok
-                        if bool(torch.all(accepted)):
+                        t0 = time.perf_counter()
+                        psi, g_el, K_el = elastic.evaluate(Z, envs, hessian=True)
+                        t1 = time.perf_counter()
+                        clock.add("hessian_evaluation", t1 - t0)
+                        phi_h, grad_h = terms.energy_gradient(Z, envs)
+                        phi, grad = psi + phi_h, g_el + grad_h
+                        clock.add("host_terms", time.perf_counter() - t1)
+                    t0 = time.perf_counter()
+                    idx = np.flatnonzero(active)
+                    Hm = K_el[idx]
+                    terms.add_hessian(Hm, Z[idx], idx)
+                    factor = _Factor(Hm)
+                    step = -factor.solve(grad[idx])                                    # (n, 3, nA)
+                    slope = np.einsum("eam,eam->e", grad[idx], step)
+                    t1 = time.perf_counter()
+                    clock.add("newton_solve", t1 - t0)
+                    # backtracking line search, `candidates` step lengths per evaluation
+                    Zi, phi_i, grad_i = Z[idx], phi[idx], grad[idx]
+                    Z_new, phi_new, grad_new = Zi.copy(), phi_i.copy(), grad_i.copy()
+                    accepted = np.zeros(len(idx), bool)
+                    inner = 0.0
+                    for j0 in range(0, st.line_search_steps, candidates):
+                        pend = np.flatnonzero(~accepted)
+                        alpha = 0.5 ** np.arange(j0, min(j0 + candidates, st.line_search_steps))
+                        trial = Zi[pend][None] + alpha[:, None, None, None] * step[pend][None]  # (j, p, 3, nA)
+                        rows = trial.reshape(-1, 3, nA)
+                        row_env = np.tile(idx[pend], len(alpha))
+                        ta = time.perf_counter()
+                        psi_t, g_t = elastic.evaluate(rows, row_env)
+                        tb = time.perf_counter()
+                        clock.add("trial_evaluation", tb - ta)
+                        phi_h, grad_h = terms.energy_gradient(rows, row_env)
+                        tc = time.perf_counter()
+                        clock.add("trial_host_terms", tc - tb)
+                        inner += tc - ta
+                        phi_t = (psi_t + phi_h).reshape(len(alpha), len(pend))
+                        grad_t = (g_t + grad_h).reshape(len(alpha), len(pend), 3, nA)
+                        ok = phi_t <= (phi_i[pend] + 1e-4 * alpha[:, None] * slope[pend]
+                                       + 1e-12 * np.abs(phi_i[pend]))
+                        hit = np.flatnonzero(ok.any(axis=0))
+                        first = ok.argmax(axis=0)[hit]
+                        Z_new[pend[hit]] = trial[first, hit]
+                        phi_new[pend[hit]] = phi_t[first, hit]
+                        grad_new[pend[hit]] = grad_t[first, hit]
+                        accepted[pend[hit]] = True
+                        if accepted.all():
                             break
-                        alpha = torch.where(accepted, alpha, 0.5 * alpha)
-                    phi0, grad = phi_new, grad_new
+                    Z[idx], phi[idx], grad[idx] = Z_new, phi_new, grad_new
+                    t2 = time.perf_counter()
+                    clock.add("line_search_bookkeeping", t2 - t1 - inner)
                     # converged when the next Newton step (predicted with the current factor) is tiny
-                    nxt = torch.cholesky_solve(grad.reshape(E_env, 3 * nA, 1), L).reshape(E_env, 3, nA)
-                    rms = torch.sqrt(torch.clamp(torch.einsum("eam,mn,ean->e", nxt, M, nxt), min=0.0)
-                                     / self.total_mass)
+                    nxt = factor.solve(grad_new)
+                    rms = np.sqrt(np.maximum(np.einsum("eam,mn,ean->e", nxt, M, nxt), 0.0) / self.total_mass)
                     newton_total += 1
-                    active = active & accepted & (rms > st.newton_tolerance * extent)
-                    if not bool(torch.any(active)):
+                    active[idx] = accepted & (rms > tolerance)
+                    clock.add("newton_solve", time.perf_counter() - t2)
+                    if not active.any():
                         break
                 if plastic:
-                    F_now = deformation(Z)
-                    wp.launch(K.return_map, dim=(E_env, C), inputs=[wp.from_torch(F_now, dtype=wp.mat33d), w_Fp, w_mu,
-                                                                     w_ys], device=self.device, stream=stream)
+                    t0 = time.perf_counter()
+                    elastic.return_map(Z)
+                    clock.add("plasticity", time.perf_counter() - t0)
                 V = (Z - Zn) / dt
                 steps += 1
-                if not bool(torch.all(torch.isfinite(Z))):
+                if not np.all(np.isfinite(Z)):
                     raise SimulationDiverged(f"the LBS simulation diverged at frame {f} (t = {self.frame_times[f]:.4g} s); "
                                              "use a smaller settings.max_dt")
-            record(f)
+            Z_frames[f] = Z
             if progress is not None:
                 progress.step(1.0 / max(T - 1, 1), f"LBS frame {f}/{T - 1}")
-        wall = time.perf_counter() - t_start
+        t_out = time.perf_counter()
+        # outputs: every frame's points from its handle transforms, one GEMM per chunk of frames
+        out_track = self._lifted_positions(Z_frames, "tracked")
+        out_handles = np.ascontiguousarray(self.handle_transforms(Z_frames).astype(np.float32).swapaxes(0, 1))
+        out_cub = self._lifted_positions(Z_frames, "cubature") if particle_states else None
+        elastic.synchronize()
+        t_end = time.perf_counter()
+        clock.add("vertex_output", t_end - t_out)
+        wall = t_out - t_start
+        phases = dict(clock.seconds)
+        phases["other"] = max(0.0, (t_end - t_begin) - sum(phases.values()))
+        phases["total"] = t_end - t_begin
+        evaluation = dict(elastic.seconds)
         results = []
         for e in range(E_env):
             meta = {"steps": steps, "newton_iterations": newton_total, "cubature_points": C, "handles": self.handles,
                     "device": self.device, "wall_s": wall, "skinning_bounds": self.bounds.tolist(),
                     "skinning_params": self.skinning_params.tolist(), "skinning_fitted": self.skinning_fitted,
                     "handle_form": "x = A[X;1] + sum_h w_h(X) D_h[X;1]; A = handle_transforms[:, -1]",
+                    "phase_seconds": phases, "evaluation_seconds": evaluation,
+                    "evaluations": dict(elastic.counts), "line_search_candidates": candidates,
                     "warnings": list(self.warnings)}
             traj = Trajectory(self.frame_times, out_track[e], solver=self.solver, handle_transforms=out_handles[e],
                               meta=meta)
@@ -638,6 +971,37 @@ class LBSSimulation(Simulation):
                                             "material": self.cubature_material.astype(np.int32)}
             results.append(traj)
         return results
+
+    def _lifted_positions(self, Z_frames: np.ndarray, points: str, chunk_bytes: int = 64 << 20) -> np.ndarray:
+        """(E, T, N, 3) float32 m: x = X + Z_t a(X) of the ``"tracked"`` or ``"cubature"`` points for the states
+        Z_frames (T, E, 3, nA).
+
+        One GEMM a (N, nA) @ [Z_t0ᵀ ... Z_tkᵀ] (nA, 3k) per chunk of frames (at most ``chunk_bytes`` of
+        output), in float32 on the simulation's device.
+        """
+        import torch
+
+        lifted, rest = {"tracked": (self._a_track, self.tracked_rest), "cubature": (self._a_cub, self.cubature_rest)}[points]
+        T, E_env, _, nA = Z_frames.shape
+        N = len(rest)
+        out = np.empty((E_env, T, N, 3), np.float32)
+        if N == 0:
+            return out
+        dev = _torch_device(self.device)
+        key = (points, dev)
+        if key not in self._device_copies:   # kept between runs: the 100k-vertex basis is 18 MB
+            self._device_copies[key] = (torch.as_tensor(np.asarray(lifted, np.float32), device=dev),
+                                        torch.as_tensor(np.asarray(rest, np.float32), device=dev))
+        a, x = self._device_copies[key]                                                      # (N, nA), (N, 3)
+        Zf = torch.as_tensor(np.ascontiguousarray(Z_frames.swapaxes(0, 1)), dtype=torch.float32, device=dev)
+        chunk = max(1, chunk_bytes // (12 * N))
+        for e in range(E_env):
+            for t0 in range(0, T, chunk):
+                t1 = min(T, t0 + chunk)
+                Zc = Zf[e, t0:t1].reshape((t1 - t0) * 3, nA).T                                  # (nA, [t a])
+                pos = torch.matmul(a, Zc).view(N, t1 - t0, 3).permute(1, 0, 2) + x              # (t, N, 3)
+                torch.from_numpy(out[e, t0:t1]).copy_(pos)
+        return out
 
     def _initial_affine_velocity(self) -> np.ndarray:
         """Constant-handle velocity (3, 4) giving the scenario's rigid initial velocity field."""

@@ -1,7 +1,8 @@
 """Warp kernels of the LBS solver: per-cubature-point energy, stress and projected Hessian.
 
-Imported only after :func:`~.warp_runtime.init_warp`.  Arrays are ``[env, point]`` in
-float64.  The elastic law is fixed-corotated on the elastic part F_e = F F_p⁻¹ of the
+Imported only after :func:`~.warp_runtime.init_warp`.  Arrays are ``[row or env, point]``
+in float64; the kernels take the solver's handle-space states Z (3 × nA per row) and form the
+deformation gradient F_c = I + Z G_c themselves.  The elastic law is fixed-corotated on the elastic part F_e = F F_p⁻¹ of the
 deformation gradient (F_p: the plastic rest-shape change, identity without plasticity)::
 
     Ψ(F_e) = μ Σ_i (σ_i − 1)² + λ/2 (J − 1)²,   σ: signed singular values, J = σ1 σ2 σ3
@@ -55,23 +56,45 @@ def basis33(i: int, j: int):
     return M
 
 
+@wp.func
+def handle_deformation(Z: wp.array3d(dtype=wp.float64), r: int, G: wp.array3d(dtype=wp.float64), c: int):
+    """F = I + Σ_m Z[r, :, m] ⊗ G[c, m, :]: the deformation gradient at cubature point c for state row r."""
+    F = wp.identity(n=3, dtype=wp.float64)
+    for m in range(G.shape[1]):
+        z = wp.vec3d(Z[r, 0, m], Z[r, 1, m], Z[r, 2, m])
+        g = wp.vec3d(G[c, m, 0], G[c, m, 1], G[c, m, 2])
+        F = F + wp.outer(z, g)
+    return F
+
+
 @wp.kernel
-def elastic_terms(F: wp.array2d(dtype=wp.mat33d), F_prev: wp.array2d(dtype=wp.mat33d),
+def elastic_terms(Z: wp.array3d(dtype=wp.float64), env: wp.array(dtype=wp.int32),
+                  Z_start: wp.array3d(dtype=wp.float64), G: wp.array3d(dtype=wp.float64),
                   plastic_inv: wp.array2d(dtype=wp.mat33d), mu: wp.array2d(dtype=wp.float64),
                   lam: wp.array2d(dtype=wp.float64), volume: wp.array(dtype=wp.float64),
                   visc: wp.array(dtype=wp.float64), need: int,
-                  psi: wp.array2d(dtype=wp.float64), P: wp.array2d(dtype=wp.mat33d), H: wp.array4d(dtype=wp.float64)):
-    """Energy (J), first Piola stress × volume (N·m) and PSD Hessian × volume at cubature point c.
+                  psi: wp.array2d(dtype=wp.float64), P: wp.array3d(dtype=wp.float64), H: wp.array4d(dtype=wp.float64)):
+    """Energy (J), first Piola stress × volume (N·m) and PSD Hessian × volume of state row r at cubature point c.
 
-    H is written as H[e, a, c, 9 b + 3 x + y] = ∂²(VΨ)/∂F_ab ∂F_xy: with this layout the
-    reduction Σ_c G_cᵀ H_c G_c is two GEMMs without any transposing copy.
+    The deformation gradient is formed here from the handle-space state, F = I + Z_r G_c, so the
+    solver uploads only the 3 × nA numbers of each candidate state.  Outputs are laid out for the
+    reduction to handle space by GEMMs without any transposing copy:
+    P[r, a, 3 c + b] = V ∂Ψ/∂F_ab (gradient: P (3R, 3C) @ G_r (3C, nA)) and
+    H[r, a, c, 9 b + 3 x + y] = V ∂²Ψ/∂F_ab ∂F_xy.
 
-    F, F_prev, plastic_inv: (E, C) deformation gradient now, at the step start, and F_p⁻¹.
+    Z: (R, 3, nA) candidate states (handle space; m for the translation columns).  env: (R,) the
+    environment of each row.  Z_start: (E, 3, nA) the states at the step start (for the viscous
+    term's F_n).  G: (C, nA, 3) 1/m, the deformation-gradient operator.  plastic_inv: (E, C) F_p⁻¹.
     mu, lam: (E, C) Pa.  volume: (C,) m³.  visc: (E,) η/dt in Pa (0 = no damping).
-    need: 0 energy only, 1 + stress, 2 + Hessian.
+    need: 0 energy only, 1 + stress, 2 + Hessian (then row r writes H[r], so R <= H.shape[0]).
+    psi: (R, C) J.  P: (R, 3, 3C).  H: (>= R, 3, C, 27).
     """
-    e, c = wp.tid()
-    Fc = F[e, c]
+    r, c = wp.tid()
+    e = env[r]
+    Fc = handle_deformation(Z, r, G, c)
+    F_prev = wp.identity(n=3, dtype=wp.float64)
+    if visc[e] > wp.float64(0.0):
+        F_prev = handle_deformation(Z_start, e, G, c)
     Q = plastic_inv[e, c]
     Fe = Fc * Q
     U, S, V = signed_svd(Fe)
@@ -90,11 +113,11 @@ def elastic_terms(F: wp.array2d(dtype=wp.mat33d), F_prev: wp.array2d(dtype=wp.ma
     Fninv = wp.mat33d()
     X = wp.mat33d()
     if eta > wp.float64(0.0):
-        Fninv = wp.inverse(F_prev[e, c])
-        X = (Fc - F_prev[e, c]) * Fninv
+        Fninv = wp.inverse(F_prev)
+        X = (Fc - F_prev) * Fninv
         X = wp.float64(0.5) * (X + wp.transpose(X))
         energy = energy + eta * wp.ddot(X, X)
-    psi[e, c] = vol * energy
+    psi[r, c] = vol * energy
     if need < 1:
         return
     d0 = two * m * (s0 - one) + l * (J - one) * s1 * s2
@@ -105,7 +128,9 @@ def elastic_terms(F: wp.array2d(dtype=wp.mat33d), F_prev: wp.array2d(dtype=wp.ma
     Pf = Pe * wp.transpose(Q)
     if eta > wp.float64(0.0):
         Pf = Pf + two * eta * X * wp.transpose(Fninv)
-    P[e, c] = vol * Pf
+    for a in range(3):
+        for b in range(3):
+            P[r, a, 3 * c + b] = vol * Pf[a, b]
     if need < 2:
         return
     Hm = mat99d()
@@ -176,22 +201,25 @@ def elastic_terms(F: wp.array2d(dtype=wp.mat33d), F_prev: wp.array2d(dtype=wp.ma
         for b in range(3):
             for x in range(3):
                 for y in range(3):
-                    H[e, a, c, 9 * b + 3 * x + y] = vol * Hm[3 * a + b, 3 * x + y]
+                    H[r, a, c, 9 * b + 3 * x + y] = vol * Hm[3 * a + b, 3 * x + y]
 
 
 @wp.kernel
-def return_map(F: wp.array2d(dtype=wp.mat33d), plastic_inv: wp.array2d(dtype=wp.mat33d),
-               mu: wp.array2d(dtype=wp.float64), yield_stress: wp.array2d(dtype=wp.float64)):
+def return_map(Z: wp.array3d(dtype=wp.float64), G: wp.array3d(dtype=wp.float64),
+               plastic_inv: wp.array2d(dtype=wp.mat33d), mu: wp.array2d(dtype=wp.float64),
+               yield_stress: wp.array2d(dtype=wp.float64)):
     """Von Mises return mapping on the Hencky strain of F_e = F F_p⁻¹; updates F_p⁻¹ in place.
 
     The deviatoric Kirchhoff stress 2μ dev(log Σ) is capped at sqrt(2/3) σ_y (the uniaxial
     yield stress σ_y); the part of the strain past it becomes permanent (F_p⁻¹ ← F⁻¹ F_e,new).
+
+    Z: (E, 3, nA) the accepted states; G: (C, nA, 3); plastic_inv, mu, yield_stress: (E, C).
     """
     e, c = wp.tid()
     ys = yield_stress[e, c]
     if not (ys < wp.float64(1.0e300)):
         return
-    Fc = F[e, c]
+    Fc = handle_deformation(Z, e, G, c)
     Fe = Fc * plastic_inv[e, c]
     U, S, V = signed_svd(Fe)
     s0 = S[0]

@@ -6,7 +6,8 @@ of 5 ms per frame, Newton with line search; set-up once — including the skinni
 ``sim.run`` timed, median of ``--runs`` after one warm-up run):
 
 * ``500 cubature points, 101k-vertex mesh`` — every vertex of a 101,122-vertex sphere is
-  written every step (x = X + Z a(X), one GEMM per frame) and read back;
+  output at every step (x = X + Z a(X): after the stepping, one GEMM per chunk of frames on the
+  device) and read back to the host;
 * ``500 cubature points, 642 vertices`` — the same with a small output mesh;
 * ``batch of 8 environments`` — base + 7 effects in one batched Newton solve (metric
   ``env_steps_per_s``);
@@ -14,7 +15,13 @@ of 5 ms per frame, Newton with line search; set-up once — including the skinni
   (metric ``fit_s``, seconds; lower is better).
 
 ``steps_per_s`` = implicit steps of a run / its wall time; entries also give the Newton
-iterations per step.
+iterations per step and, from one more run of each case, where the time goes per step
+(``phase_ms_per_step``: host wall time of the step-start evaluation with its Hessian, the line
+search's trial evaluations, the host's energy terms, the Newton solve, the line search's
+bookkeeping, plasticity, vertex output; ``evaluation_ms_per_step``: inside the evaluations, the
+upload, the Warp kernel with and without the Hessian, the gradient and Hessian reductions, the
+download and the host's wait — device times from CUDA events on a GPU (that run sets
+``profile_device``), wall times on the CPU).
 """
 
 from __future__ import annotations
@@ -37,6 +44,28 @@ def add_arguments(p):
     p.add_argument("--steps", type=int, default=None, help="steps per timed run (default: 200 on a GPU, 30 on the CPU)")
     p.add_argument("--runs", type=int, default=3, help="timed runs per case (median; default 3)")
     p.add_argument("--skip-mesh", action="store_true", help="skip the 100k-vertex case")
+    p.add_argument("--line-search-candidates", type=int, default=0,
+                   help="step lengths per line-search launch (default 0: automatic, 1 on the CPU, 4 on a GPU)")
+
+
+PHASES = ("hessian_evaluation", "trial_evaluation", "host_terms", "trial_host_terms", "newton_solve",
+          "line_search_bookkeeping", "plasticity", "vertex_output", "set_up", "other")
+EVALUATION_PHASES = ("upload", "kernel_hessian", "kernel_trial", "reduction_gradient", "reduction_hessian", "download",
+                     "wait")
+
+
+def _breakdown(meta: dict, steps: int) -> tuple[dict, dict]:
+    """Per-step milliseconds of the run's phases and of the phases inside its device evaluations."""
+    phases = {k: 1e3 * meta["phase_seconds"][k] / steps for k in PHASES if k in meta["phase_seconds"]}
+    inner = {k: 1e3 * meta["evaluation_seconds"][k] / steps for k in EVALUATION_PHASES if k in meta["evaluation_seconds"]}
+    return phases, inner
+
+
+def _print_breakdown(phases: dict, inner: dict, evaluations: dict, steps: int) -> None:
+    print("      per step (ms): " + ", ".join(f"{k} {v:.3f}" for k, v in phases.items() if v > 0), flush=True)
+    print("      evaluations (ms/step): " + ", ".join(f"{k} {v:.3f}" for k, v in inner.items() if v > 0)
+          + f"; {evaluations['hessian'] / steps:.2f} Hessian + {evaluations['trial'] / steps:.2f} trial "
+          f"evaluations/step ({evaluations['trial_rows'] / max(evaluations['trial'], 1):.2f} rows each)", flush=True)
 
 
 def _timed(fn, runs: int, wp, device) -> list[float]:
@@ -71,7 +100,7 @@ def run(args) -> list[dict]:
     scenario = Scenario(initial_velocity=[0.0, 0.0, -1.0])
     centre = (0.0, 0.0, RADIUS + 0.02)
     frames = np.arange(steps + 1) * STEP
-    settings = {"cubature_points": args.cubature, "max_dt": STEP}
+    settings = {"cubature_points": args.cubature, "max_dt": STEP, "line_search_candidates": args.line_search_candidates}
     results = []
 
     def bench(case, mesh, effects_lists=None, metric="steps_per_s"):
@@ -87,14 +116,23 @@ def run(args) -> list[dict]:
         envs = 1 if effects_lists is None else len(effects_lists)
         n_steps = traj.meta["steps"]
         value = {"steps_per_s": n_steps / med, "env_steps_per_s": envs * n_steps / med}[metric]
+        # one more run for the breakdown (device phases timed with CUDA events on a GPU)
+        sim.settings.profile_device = True
+        profiled = go()
+        sim.settings.profile_device = False
+        meta = (profiled[0] if isinstance(profiled, list) else profiled).meta
+        phases, inner = _breakdown(meta, n_steps)
         entry = {"case": case, "device": described, "metric": metric, "value": value, "runs": args.runs,
                  "cubature_points": len(sim.cubature_rest), "handles": sim.handles + 1,
                  "vertices": int(len(body.tracked_points)), "steps_per_run": n_steps, "environments": envs,
                  "newton_iterations_per_step": traj.meta["newton_iterations"] / n_steps, "median_run_s": med,
-                 "prepare_s": prepare_s}
+                 "prepare_s": prepare_s, "line_search_candidates": traj.meta["line_search_candidates"],
+                 "phase_ms_per_step": phases, "evaluation_ms_per_step": inner,
+                 "profiled_run_s": meta["phase_seconds"]["total"]}
         results.append(entry)
         print(f"  {case}: {value:.4g} {metric} (run {med:.3g} s, {entry['newton_iterations_per_step']:.2f} Newton "
               f"iterations/step)", flush=True)
+        _print_breakdown(phases, inner, meta["evaluations"], n_steps)
         return sim
 
     ico = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
