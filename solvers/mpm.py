@@ -43,6 +43,21 @@ SOLVER_NAME = "mpm"
 ELASTIC_RELEASE_FRACTION = 0.1
 """Speed a particle may gain from released elastic strain within a chunk, as a fraction of the wave speed."""
 TRANSFER_SCHEME = "MLS-MPM (APIC affine transfer), quadratic B-splines, explicit symplectic Euler"
+P2G_SCATTER_MODES = ("atomic", "vector", "warp")
+"""How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
+CUDA_GRAPH_SUBSTEPS = 16
+"""Default of ``graph_substeps`` on CUDA: substeps per captured graph (launch overhead ~1 µs per graph)."""
+
+
+@dataclass(frozen=True)
+class _Tuning:
+    """The GPU-tuning settings resolved for a device (see :class:`MPMSettings`)."""
+
+    scatter: str
+    split_g2p: bool
+    graph_substeps: int
+    block_dim: int
+    sort_interval: int
 
 
 # ------------------------------------------------------------------------------------------ settings
@@ -69,8 +84,23 @@ class MPMSettings:
     material_sampling: ``"nearest"`` or ``"trilinear"`` lookup of voxel material fields.
     initial_deformation: optional (3, 3) elastic deformation gradient every particle starts with
         (the body is given in its deformed shape, e.g. a pre-stretched bar); ``None`` = identity.
-    sort_particles: reorder particles by grid cell every frame (memory locality, less atomic
-        contention on the GPU).
+    sort_particles: reorder particles by grid cell before every chunk of substeps (memory locality;
+        on a GPU it also lets a warp's particles share stencils, which the ``"warp"`` scatter exploits).
+
+    GPU tuning (the results do not depend on them beyond float reassociation; ``None``/``"auto"``
+    picks the device's default, the CPU's being the plain kernels):
+
+    p2g_scatter: how P2G adds to the grid: ``"atomic"`` (one Warp vec4 atomic = four scalar atomics
+        per node), ``"vector"`` (one 16-byte vector reduction per node on sm_90+), ``"warp"``
+        (warp-aggregated per stencil, then vector reductions) or ``"auto"`` (``"warp"`` on CUDA,
+        ``"atomic"`` on the CPU).
+    split_g2p: gather to particles and to tracked points in two kernels (fewer registers for the
+        particles); ``None`` = on CUDA only.
+    graph_substeps: replay substeps as captured graphs of up to this many substeps (0 = launch each
+        kernel from Python); ``None`` = 16 on CUDA, 0 on the CPU.
+    block_dim: threads per block of the substep kernels (a multiple of 32, at most 1024).
+    sort_interval: also re-sort the particles every this many substeps within a chunk (0 = once per
+        chunk).
     """
 
     dx: Optional[float] = None
@@ -88,6 +118,11 @@ class MPMSettings:
     material_sampling: str = "nearest"
     initial_deformation: Optional[np.ndarray] = None
     sort_particles: bool = True
+    p2g_scatter: str = "auto"
+    split_g2p: Optional[bool] = None
+    graph_substeps: Optional[int] = None
+    block_dim: int = 256
+    sort_interval: int = 0
 
     def __post_init__(self):
         def positive(name, value, integer=False):
@@ -119,6 +154,28 @@ class MPMSettings:
         if self.material_sampling not in ("nearest", "trilinear"):
             raise UserError(f"MPM setting 'material_sampling' must be 'nearest' or 'trilinear', "
                             f"got {self.material_sampling!r}")
+        if self.p2g_scatter not in ("auto",) + P2G_SCATTER_MODES:
+            raise UserError(f"MPM setting 'p2g_scatter' must be one of {('auto',) + P2G_SCATTER_MODES}, "
+                            f"got {self.p2g_scatter!r}")
+        if self.split_g2p is not None:
+            self.split_g2p = bool(self.split_g2p)
+        for name in ("graph_substeps", "sort_interval"):
+            value = getattr(self, name)
+            if value is None and name == "graph_substeps":
+                continue
+            try:
+                value = int(value)
+            except (TypeError, ValueError):
+                raise UserError(f"MPM setting '{name}' must be a whole number, got {value!r}") from None
+            if value < 0:
+                raise UserError(f"MPM setting '{name}' must be 0 or more, got {value}")
+            setattr(self, name, value)
+        try:
+            self.block_dim = int(self.block_dim)
+        except (TypeError, ValueError):
+            raise UserError(f"MPM setting 'block_dim' must be a whole number, got {self.block_dim!r}") from None
+        if not (32 <= self.block_dim <= 1024 and self.block_dim % 32 == 0):
+            raise UserError(f"MPM setting 'block_dim' must be a multiple of 32 from 32 to 1024, got {self.block_dim}")
         if self.initial_deformation is not None:
             F = np.asarray(self.initial_deformation, dtype=np.float64)
             if F.shape != (3, 3) or not np.all(np.isfinite(F)) or np.linalg.det(F) <= 0:
@@ -201,8 +258,20 @@ class _Buffers:
     stats: dict
     env: dict
     lost: object
+    step_base: object  # (1,) int32: substep index a captured graph of substeps starts from
     grid: dict = field(default_factory=dict)
     grid_dims: tuple = (0, 0, 0)
+    initial: Optional[dict] = None  # the initial particle state (base material), uploaded once
+    parity: int = 0  # which of the two particle buffers is current (flips with every sort)
+    commands: dict = field(default_factory=dict)  # _StepCommands per (parity, kernels, ...); cleared with the grid
+
+
+@dataclass
+class _StepCommands:
+    """The launches of one substep for one particle buffer and grid, and graphs of several substeps."""
+
+    launches: list  # [(name, warp Launch)] in order; the ``substep`` parameter is set per launch
+    graphs: dict = field(default_factory=dict)  # substep count -> captured graph (ending with step_base += count)
 
 
 _PARTICLE_FIELDS = (("x", "vec3"), ("v", "vec3"), ("C", "mat33"), ("F", "mat33"), ("rot", "quat"), ("plastic", "float"),
@@ -231,6 +300,9 @@ class MPMSimulation(Simulation):
         super().__init__(body, scenario, frame_times, device)
         self.settings = settings
         self._buffers: Optional[_Buffers] = None
+        self._kc = None  # mpm_kernels_cuda, imported on first use
+        self._profile: Optional[list] = None  # (section, start, end) while profile() runs
+        self._run_tuning: Optional[_Tuning] = None  # the tuning of the run in progress
 
     # ------------------------------------------------------------------ set-up
     def _setup(self, material: MaterialSpec, progress: Optional[Progress]):
@@ -325,6 +397,12 @@ class MPMSimulation(Simulation):
         plastic0[snow] = 1.0  # snow: plastic volume ratio Jp starts at 1
         self._plastic0 = plastic0
         self._anchor = np.array([0.0, 0.0, sc.ground_height if sc.ground_height is not None else 0.0])
+        self._rho_min = float(sampled.density.min())
+        # every deforming particle purely elastic fixed-corotated: the elastic-only P2G applies (see _choose_p2g)
+        self._elastic_only = all(
+            c.held_fixed or c.elasticity == "fixed_corotated" and c.plasticity == "none"
+            and not math.isfinite(float(c.params.get("yield_stress", math.inf)))
+            for c in (materials.BY_ID[int(i)] for i in np.unique(sampled.material)))
 
         if progress:
             progress.set_status("MPM: compiling kernels")
@@ -336,6 +414,9 @@ class MPMSimulation(Simulation):
         self._k = mpm_kernels
         self._code = (sampled.material + np.where(held, int(mpm_kernels.HELD_FLAG), 0)).astype(np.int32)
         wp.load_module(mpm_kernels, device=self.device)
+        tuning = self._tuning()
+        if tuning.scatter != "atomic" or tuning.split_g2p:
+            self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
 
     @property
@@ -368,8 +449,34 @@ class MPMSimulation(Simulation):
         sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         self._buffers = _Buffers(envs, particles, spare, tracked, sort_keys, sort_values, lanes, stats, env,
-                                 wp.zeros(envs, dtype=wp.int32, device=dev))
+                                 wp.zeros(envs, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev))
         return self._buffers
+
+    def _reset_particles(self, buf: _Buffers, terms_list: list) -> None:
+        """Set the particle buffer to the initial state (device-to-device copy of a state uploaded once per batch
+        size), with each environment's Young's-modulus scaling (stiffness_region) applied to μ and λ."""
+        wp = self._wp
+        E, N = buf.envs, self.particle_count
+        if buf.initial is None:
+            mu, lam = self.material.lame()
+            f32 = np.float32
+            host = {"x": np.tile(self.sample_positions, (E, 1)).astype(f32), "v": np.tile(self._v0, (E, 1)).astype(f32),
+                    "C": np.tile(self._C0, (E, 1, 1)), "F": np.tile(self._F0, (E, 1, 1)),
+                    "rot": np.tile(self._rot0, (E * N, 1)), "plastic": np.tile(self._plastic0, E).astype(f32),
+                    "mass": np.tile(self._masses, E).astype(f32), "vol": np.tile(self.particle_volume, E).astype(f32),
+                    "mu": np.tile(mu, E).astype(f32), "lam": np.tile(lam, E).astype(f32),
+                    "code": np.tile(self._code, E), "pid": np.arange(E * N, dtype=np.int32)}
+            P = buf.particles
+            buf.initial = {name: wp.array(host[name], dtype=P[name].dtype, device=self.device)
+                           for name, _ in _PARTICLE_FIELDS}
+        P = buf.particles
+        for name, _ in _PARTICLE_FIELDS:
+            wp.copy(P[name], buf.initial[name])
+        for e, terms in enumerate(terms_list):
+            if terms.E_scale is not None:
+                mu_e, lam_e = self.material.lame(terms.E_multiplier(N))
+                P["mu"][e * N:(e + 1) * N].assign(mu_e.astype(np.float32))
+                P["lam"][e * N:(e + 1) * N].assign(lam_e.astype(np.float32))
 
     def _ensure_grid(self, buf: _Buffers, dims: tuple) -> None:
         if all(a >= b for a, b in zip(buf.grid_dims, dims)) and buf.grid:
@@ -381,6 +488,7 @@ class MPMSimulation(Simulation):
             raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
                             f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
         total = nodes * buf.envs
+        buf.commands.clear()  # launches and graphs hold the old grid
         buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
                     "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
         buf.grid_dims = grow
@@ -404,37 +512,23 @@ class MPMSimulation(Simulation):
         ground_z = float(sc.ground_height) if has_ground else 0.0
 
         # ---- per-environment parameters
-        mu_all = np.empty((E, N))
-        lam_all = np.empty((E, N))
         acc = np.zeros((E, 3))
         drag = np.zeros((E, 2))
         friction = np.zeros(E)
         yield_stress = np.full(E, np.inf)
         eta = np.zeros(E)
         for e, terms in enumerate(terms_list):
-            mu_all[e], lam_all[e] = self.material.lame(terms.E_multiplier(N))
             acc[e] = sc.gravity + np.asarray(terms.extra_acceleration, dtype=np.float64)
             drag[e] = (terms.linear_drag, terms.quadratic_drag)
             friction[e] = terms.friction_mu
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
-        rho_min = float(self.material.density.min())
+        rho_min = self._rho_min
 
         # ---- initial state
-        P = buf.particles
-        P["x"].assign(np.tile(self.sample_positions, (E, 1)).astype(np.float32))
-        P["v"].assign(np.tile(self._v0, (E, 1)).astype(np.float32))
-        P["C"].assign(np.tile(self._C0, (E, 1, 1)))
-        P["F"].assign(np.tile(self._F0, (E, 1, 1)))
-        P["rot"].assign(np.tile(self._rot0, (E * N, 1)))
-        P["plastic"].assign(np.tile(self._plastic0, E).astype(np.float32))
-        P["mass"].assign(np.tile(self._masses, E).astype(np.float32))
-        P["vol"].assign(np.tile(self.particle_volume, E).astype(np.float32))
-        P["mu"].assign(mu_all.reshape(-1).astype(np.float32))
-        P["lam"].assign(lam_all.reshape(-1).astype(np.float32))
-        P["code"].assign(np.tile(self._code, E))
-        P["pid"].assign(np.arange(E * N, dtype=np.int32))
+        tuning = self._tuning()
+        self._reset_particles(buf, terms_list)
         T = buf.tracked
         tracked0 = np.zeros((E * M_alloc, 3), np.float32)
         tracked_v0 = np.zeros((E * M_alloc, 3), np.float32)
@@ -454,6 +548,7 @@ class MPMSimulation(Simulation):
         Env["friction"].assign(friction.astype(np.float32))
         buf.lost.zero_()
         self._p2g_kernel = self._choose_p2g(yield_stress)
+        self._run_tuning = tuning
 
         times = self.frame_times
         F_count = len(times)
@@ -544,7 +639,7 @@ class MPMSimulation(Simulation):
                     "particle_substeps": int(steps_log[e].sum()) * N}
             traj = Trajectory(times=times, positions=out_positions[e], solver=self.solver, meta=meta)
             if states is not None and e == 0:
-                mu, lam = mu_all[0], lam_all[0]
+                mu, lam = self.material.lame(terms_list[0].E_multiplier(N))
                 traj.particle_positions = states["x"]
                 traj.particle_attributes = {
                     "velocity": states["v"], "volume_ratio": states["J"], "plastic_state": states["plastic"],
@@ -557,20 +652,42 @@ class MPMSimulation(Simulation):
     # ------------------------------------------------------------------ pieces of a run
     def _choose_p2g(self, yield_stress: np.ndarray):
         """The elastic-only P2G when every deforming particle is purely elastic fixed-corotated and no
-        environment has the plasticity effect, else the general one (same results for such runs)."""
-        deforming = [materials.BY_ID[int(i)] for i in np.unique(self.material.material)]
-        elastic = all(c.held_fixed or c.elasticity == "fixed_corotated" and c.plasticity == "none"
-                      and not math.isfinite(float(c.params.get("yield_stress", math.inf))) for c in deforming)
-        return self._k.p2g_elastic if elastic and np.all(np.isinf(yield_stress)) else self._k.p2g_general
+        environment has the plasticity effect, else the general one (same results for such runs); with the
+        scatter of the ``p2g_scatter`` setting."""
+        general = not (self._elastic_only and np.all(np.isinf(yield_stress)))
+        scatter = self._tuning().scatter
+        if scatter == "atomic":
+            return self._k.p2g_general if general else self._k.p2g_elastic
+        return self._cuda_kernels().P2G_KERNELS[(scatter, general)]
+
+    def _tuning(self) -> _Tuning:
+        """The GPU-tuning settings resolved for this device (read at every run: they may be changed between runs)."""
+        s = self.settings
+        cuda = str(self.device).startswith("cuda")
+        scatter = s.p2g_scatter if s.p2g_scatter != "auto" else ("warp" if cuda else "atomic")
+        split = s.split_g2p if s.split_g2p is not None else cuda
+        graphs = s.graph_substeps if s.graph_substeps is not None else (CUDA_GRAPH_SUBSTEPS if cuda else 0)
+        return _Tuning(scatter, bool(split), int(graphs), int(s.block_dim), int(s.sort_interval))
+
+    def _cuda_kernels(self):
+        """The GPU-tuned kernel module (``mpm_kernels_cuda``), loaded for this device on first use."""
+        if self._kc is None:
+            from . import mpm_kernels_cuda
+
+            self._wp.load_module(mpm_kernels_cuda, device=self.device)
+            self._kc = mpm_kernels_cuda
+        return self._kc
 
     def _frame_stats(self, buf: _Buffers, E: int, N: int, M: int, frame: int):
         """Per environment: (E, 3) lower and upper bounds, (E,) max speed and max wave speed; raises on NaN."""
         wp, k = self._wp, self._k
         P, st = buf.particles, buf.stats
+        start = self._mark()
         wp.launch(k.frame_stats, dim=E * buf.lanes, device=self.device,
                   inputs=[P["x"], P["v"], P["mass"], P["vol"], P["mu"], P["lam"], P["plastic"], P["code"], self._laws,
                           buf.tracked["x"], N, M, buf.lanes],
                   outputs=[st["lo"], st["hi"], st["stats"]])
+        self._record("frame_stats", start)
         lo = st["lo"].numpy().reshape(E, buf.lanes, 3).min(1).astype(np.float64)
         hi = st["hi"].numpy().reshape(E, buf.lanes, 3).max(1).astype(np.float64)
         stats = st["stats"].numpy().reshape(E, buf.lanes, 3)
@@ -587,11 +704,13 @@ class MPMSimulation(Simulation):
         return lo, hi, vmax, cmax
 
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
+        """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
         wp, k = self._wp, self._k
         P, S = buf.particles, buf.spare
         n = E * N
         dims = wp.vec3i(*buf.grid_dims)
         nodes = int(np.prod(buf.grid_dims))
+        start = self._mark()
         wp.launch(k.cell_keys, dim=n, device=self.device,
                   inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
                   outputs=[buf.sort_keys, buf.sort_values])
@@ -599,7 +718,9 @@ class MPMSimulation(Simulation):
         names = [name for name, _ in _PARTICLE_FIELDS]
         wp.launch(k.gather_particles, dim=n, device=self.device,
                   inputs=[buf.sort_values] + [P[a] for a in names] + [S[a] for a in names])
+        self._record("sort", start)
         buf.particles, buf.spare = S, P
+        buf.parity ^= 1
 
     def _place_grid(self, buf: _Buffers, lo: np.ndarray, hi: np.ndarray, frame: int) -> None:
         """Size the grid and set each environment's origin around its material's (E, 3) bounds."""
@@ -622,6 +743,51 @@ class MPMSimulation(Simulation):
 
     def _step_frame(self, buf: _Buffers, E: int, N: int, M_alloc: int, first: int, stop: int, has_ground: int,
                     ground_z: float, progress: Optional[Progress]) -> None:
+        """Substeps ``first .. stop - 1`` of the current frame (one chunk), re-sorting every ``sort_interval``."""
+        tuning = self._run_tuning
+        segment = tuning.sort_interval if tuning.sort_interval > 0 and self.settings.sort_particles else stop - first
+        step = first
+        while step < stop:
+            if step > first:
+                self._sort(buf, E, N)
+            end = min(stop, step + segment)
+            self._step_range(buf, E, N, M_alloc, step, end, has_ground, ground_z, progress, tuning)
+            step = end
+
+    def _step_range(self, buf: _Buffers, E: int, N: int, M_alloc: int, first: int, stop: int, has_ground: int,
+                    ground_z: float, progress: Optional[Progress], tuning: _Tuning) -> None:
+        wp, k, dev = self._wp, self._k, self.device
+        cmds = self._commands(buf, E, N, M_alloc, has_ground, ground_z, tuning)
+        if tuning.graph_substeps > 0 and self._profile is None:
+            # graphs of `size` substeps read their first substep index from step_base and advance it
+            wp.launch(k.set_step, dim=1, inputs=[buf.step_base, first], device=dev)
+            sizes = [tuning.graph_substeps] + [1 << i for i in reversed(range(tuning.graph_substeps.bit_length()))
+                                                if (1 << i) < tuning.graph_substeps]
+            step = first
+            checked = first
+            while step < stop:
+                size = next(z for z in sizes if z <= stop - step)
+                wp.capture_launch(self._graph(cmds, size, buf))
+                step += size
+                if progress is not None and step - checked >= 256:
+                    progress.check()
+                    checked = step
+            return
+        wp.launch(k.set_step, dim=1, inputs=[buf.step_base, 0], device=dev)
+        for step in range(first, stop):
+            for name, cmd in cmds.launches:
+                cmd.set_param_by_name("substep", step)
+                self._launch(name, cmd)
+            if progress is not None and step % 256 == 255:
+                progress.check()
+
+    def _commands(self, buf: _Buffers, E: int, N: int, M_alloc: int, has_ground: int, ground_z: float,
+                  tuning: _Tuning) -> _StepCommands:
+        """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim)
+        cmds = buf.commands.get(key)
+        if cmds is not None:
+            return cmds
         wp, k, dev = self._wp, self._k, self.device
         P, T, G, Env = buf.particles, buf.tracked, buf.grid, buf.env
         dims = wp.vec3i(*buf.grid_dims)
@@ -629,27 +795,109 @@ class MPMSimulation(Simulation):
         dx = self.dx
         inv_dx = 1.0 / dx
         n = E * N
-        p2g = wp.launch(self._p2g_kernel, dim=n, device=dev, record_cmd=True,
-                        inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"], P["vol"], P["mu"],
-                                P["lam"], P["code"], self._laws, Env["dt"], Env["steps"], Env["yield"], Env["eta"],
-                                Env["origin"],
-                                N, nodes, dims, dx, inv_dx, 0],
-                        outputs=[G["mv"], G["held"], buf.lost])
-        grid = wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True,
-                         inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"], Env["drag"], Env["friction"],
-                                 Env["origin"], nodes, dims, dx, has_ground, ground_z, 0],
-                         outputs=[G["v"]])
-        g2p = wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True,
-                        inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
-                                Env["dt"],
-                                Env["steps"], Env["origin"], N, n, M_alloc, nodes, dims, dx, inv_dx, has_ground,
-                                ground_z, 0])
-        for step in range(first, stop):
-            for cmd in (p2g, grid, g2p):
-                cmd.set_param_by_name("substep", step)
-                cmd.launch()
-            if progress is not None and step % 256 == 255:
-                progress.check()
+        bd = tuning.block_dim if str(dev).startswith("cuda") else None  # CPU kernels run thread by thread
+        p2g_dim = n
+        if tuning.scatter == "warp":
+            p2g_dim = self._cuda_kernels().padded_launch_dim(n)
+        launches = [("p2g", wp.launch(self._p2g_kernel, dim=p2g_dim, device=dev, record_cmd=True, block_dim=bd,
+                                      inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"],
+                                              P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
+                                              Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
+                                              n, N, nodes, dims, dx, inv_dx, 0],
+                                      outputs=[G["mv"], G["held"], buf.lost])),
+                    ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
+                                              inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
+                                                      Env["drag"], Env["friction"], Env["origin"], buf.step_base,
+                                                      nodes, dims, dx, has_ground, ground_z, 0],
+                                              outputs=[G["v"]]))]
+        if tuning.split_g2p:
+            kc = self._cuda_kernels()
+            launches.append(("g2p", wp.launch(kc.g2p_particles, dim=n, device=dev, record_cmd=True, block_dim=bd,
+                                              inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, G["v"],
+                                                      Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, nodes,
+                                                      dims, dx, inv_dx, has_ground, ground_z, 0])))
+            if len(self.tracked_rest):
+                launches.append(("g2p_tracked", wp.launch(
+                    kc.g2p_tracked, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
+                    inputs=[T["x"], T["v"], T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"], buf.step_base,
+                            M_alloc, nodes, dims, dx, inv_dx, has_ground, ground_z, 0])))
+        else:
+            launches.append(("g2p", wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
+                                              inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"],
+                                                      T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"],
+                                                      buf.step_base, N, n, M_alloc, nodes, dims, dx, inv_dx,
+                                                      has_ground, ground_z, 0])))
+        cmds = buf.commands[key] = _StepCommands(launches)
+        return cmds
+
+    def _graph(self, cmds: _StepCommands, size: int, buf: _Buffers):
+        """The captured graph of ``size`` substeps starting at ``step_base`` (which it advances by ``size``)."""
+        graph = cmds.graphs.get(size)
+        if graph is None:
+            wp = self._wp
+            for module in (self._k,) + ((self._kc,) if self._kc is not None else ()):
+                wp.load_module(module, device=self.device)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                for offset in range(size):
+                    for _, cmd in cmds.launches:
+                        cmd.set_param_by_name("substep", offset)
+                        cmd.launch()
+                wp.launch(self._k.advance_step, dim=1, inputs=[buf.step_base, size], device=self.device)
+            graph = cmds.graphs[size] = capture.graph
+        return graph
+
+    # ------------------------------------------------------------------ kernel timing (profile)
+    def _mark(self):
+        """Start of a timed section when profiling (an event on CUDA, a clock reading on the CPU), else None."""
+        if self._profile is None:
+            return None
+        if str(self.device).startswith("cuda"):
+            event = self._wp.Event(self.device, enable_timing=True)
+            self._wp.get_stream(self.device).record_event(event)
+            return event
+        return time.perf_counter()
+
+    def _record(self, name: str, start) -> None:
+        if self._profile is None:
+            return
+        if str(self.device).startswith("cuda"):
+            end = self._wp.Event(self.device, enable_timing=True)
+            self._wp.get_stream(self.device).record_event(end)
+            self._profile.append((name, start, end))
+        else:
+            self._profile.append((name, start, time.perf_counter()))
+
+    def _launch(self, name: str, cmd) -> None:
+        if self._profile is None:
+            cmd.launch()
+            return
+        start = self._mark()
+        cmd.launch()
+        self._record(name, start)
+
+    def profile(self, effects=(), progress: Optional[Progress] = None) -> dict:
+        """One run with every kernel timed (CUDA events on a GPU, clock readings on the CPU; graphs are off).
+
+        Returns seconds per section summed over the run — ``p2g``, ``grid_update``, ``g2p``, ``g2p_tracked``
+        (when split), ``sort``, ``frame_stats`` — plus ``wall`` (the whole run), ``substeps`` and
+        ``particle_substeps`` (of environment 0).
+        """
+        terms = self.terms_for(effects)
+        self._profile = []
+        try:
+            t0 = time.perf_counter()
+            traj = self._run_terms([terms], progress=progress, particle_states=False)[0]
+            self._wp.synchronize_device(self.device)
+            wall = time.perf_counter() - t0
+            sections: dict = {}
+            cuda = str(self.device).startswith("cuda")
+            for name, start, end in self._profile:
+                seconds = self._wp.get_event_elapsed_time(start, end) / 1e3 if cuda else end - start
+                sections[name] = sections.get(name, 0.0) + seconds
+        finally:
+            self._profile = None
+        sections.update(wall=wall, substeps=traj.meta["substeps_total"], particle_substeps=traj.meta["particle_substeps"])
+        return sections
 
     def _record_state(self, buf: _Buffers, scratch: dict, states: dict, frame: int) -> None:
         wp, k = self._wp, self._k
@@ -660,6 +908,30 @@ class MPMSimulation(Simulation):
                   outputs=[scratch["x"], scratch["v"], scratch["J"], scratch["plastic"]])
         for key in states:
             states[key][frame] = scratch[key].numpy()
+
+
+# ------------------------------------------------------------------------------------------ ahead of time
+def compile_cuda_kernels(arch: int = 90, module_dir=None) -> list:
+    """Compile all MPM kernels (``mpm_kernels`` and the GPU-tuned ``mpm_kernels_cuda``) for a CUDA architecture
+    ahead of time, with Warp's NVRTC; no GPU is needed.
+
+    arch: compute capability as an integer (90 = H100/H200, sm_90).
+    module_dir: where to write the sources and binaries; ``None`` = Warp's kernel cache, so that a later run on
+        such a GPU (with the same kernel cache) loads them instead of compiling.
+    Returns the paths of the compiled modules.  Raises :class:`UserError` when this Warp cannot compile for
+    ``arch`` (no NVRTC), and Warp's error (naming file and line) when a kernel does not compile.
+    """
+    from . import mpm_kernels, mpm_kernels_cuda
+    from .warp_runtime import init_warp
+
+    wp = init_warp()
+    supported = wp.get_cuda_supported_archs()
+    if int(arch) not in supported:
+        raise UserError(f"Warp cannot compile CUDA code for sm_{arch} here (NVRTC targets: {supported or 'none'})")
+    paths = []
+    for module in (mpm_kernels, mpm_kernels_cuda):
+        paths += wp.compile_aot_module(module, arch=int(arch), module_dir=module_dir)
+    return paths
 
 
 # ------------------------------------------------------------------------------------------ entry point

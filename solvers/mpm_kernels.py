@@ -19,7 +19,12 @@ elastic fixed-corotated law only), :func:`grid_update` (forces, drag, boundary c
 clears the accumulators for the next substep) and :func:`g2p` (gather, advection; also moves
 the tracked points).  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
-separate runs.
+separate runs.  The substep index is the launch parameter ``substep`` plus the device counter
+``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
+:func:`advance_step`, so one graph serves every position in a frame (:func:`set_step` starts it).
+
+GPU-tuned variants (vector and warp-aggregated scatter, split G2P) are in :mod:`.mpm_kernels_cuda`;
+they share this module's physics functions.
 """
 
 from __future__ import annotations
@@ -270,6 +275,42 @@ def constitutive_update(law: ClassLaw, Fn: wp.mat33, q0: wp.quat, state: float, 
     return tau, Fe, q0, new_state, J
 
 
+@wp.func(inline=True)
+def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, F: wp.array(dtype=wp.mat33),
+                            rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
+                            lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
+                            env_eta: wp.array(dtype=float)):
+    """Deformation update F ← (I + Δt C) F, the class's law and Kelvin–Voigt viscosity of one deforming particle.
+
+    Writes the particle's new F, rotation and plastic state; returns its Kirchhoff stress τ, Pa.
+    """
+    Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
+    tau, Fe, q, state, J = constitutive_update(law, Fn, rot[p], plastic[p], mu_p[p], lam_p[p], env_yield[env])
+    plastic[p] = state
+    eta = env_eta[env]
+    if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
+        tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
+    F[p] = Fe
+    rot[p] = q
+    return tau
+
+
+@wp.func(inline=True)
+def particle_stress_elastic(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, F: wp.array(dtype=wp.mat33),
+                            rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
+                            lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
+                            env_eta: wp.array(dtype=float)):
+    """:func:`particle_stress_general` for the elastic fixed-corotated law only (same results for such particles)."""
+    Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
+    tau, q, J = elastic_fixed_corotated(Fn, rot[p], mu_p[p], lam_p[p])
+    eta = env_eta[env]
+    if eta > 0.0:
+        tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
+    F[p] = Fn
+    rot[p] = q
+    return tau
+
+
 def _make_p2g(general: bool):
     """The P2G kernel.  ``general=False`` compiles only the elastic fixed-corotated law (far fewer
     registers on a GPU), for runs whose deforming material is all jelly without plasticity."""
@@ -279,13 +320,16 @@ def _make_p2g(general: bool):
             mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
             lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
             env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
-            env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
-            n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, substep: int,
-            grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
-        """Deformation update, plasticity, stress and the fused scatter of mass and momentum."""
+            env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
+            n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
+            substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
+            lost: wp.array(dtype=wp.int32)):
+        """Deformation update, plasticity, stress and the fused scatter of mass and momentum (one atomic per node)."""
         p = wp.tid()
+        if p >= n_particles:  # padding of a launch rounded up to whole warps
+            return
         env = p / n_per_env
-        if substep >= env_steps[env]:
+        if substep + step_base[0] >= env_steps[env]:
             return
         dt = env_dt[env]
         xp = x[p]
@@ -305,21 +349,10 @@ def _make_p2g(general: bool):
         Cp = C[p]
         tau = wp.mat33(0.0)
         if law.held == 0:
-            Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
-            J = float(1.0)
-            q = wp.quat()
             if wp.static(general):
-                state = float(0.0)
-                tau, Fn, q, state, J = constitutive_update(law, Fn, rot[p], plastic[p], mu_p[p], lam_p[p],
-                                                           env_yield[env])
-                plastic[p] = state
+                tau = particle_stress_general(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
             else:
-                tau, q, J = elastic_fixed_corotated(Fn, rot[p], mu_p[p], lam_p[p])
-            eta = env_eta[env]
-            if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
-                tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
-            F[p] = Fn
-            rot[p] = q
+                tau = particle_stress_elastic(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
 
         affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
         vp = v[p]
@@ -362,6 +395,7 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
                 env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
                 env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
                 env_friction: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
+                step_base: wp.array(dtype=wp.int32),
                 nodes_per_env: int, dims: wp.vec3i, dx: float, has_ground: int, ground_z: float, substep: int,
                 grid_v: wp.array(dtype=wp.vec4)):
     """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, ground contact.
@@ -370,7 +404,7 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
     """
     n = wp.tid()
     env = n / nodes_per_env
-    if substep >= env_steps[env]:
+    if substep + step_base[0] >= env_steps[env]:
         return
     mv = grid_mv[n]
     m = mv[3]
@@ -406,47 +440,33 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
     grid_held[n] = 0.0
 
 
-@wp.kernel
-def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
-        tv: wp.array(dtype=wp.vec3),
-        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
-        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
-        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
-        inv_dx: float, has_ground: int, ground_z: float, substep: int):
-    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+@wp.func(inline=True)
+def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3, bi: wp.vec3, bj: wp.vec3,
+                    bk: wp.vec3, dt: float, dx: float, inv_dx: float, has_ground: int, ground_z: float,
+                    x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33)):
+    """Store a particle's gathered velocity ``vel`` and affine matrix and move it (held ones stay put).
 
-    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
-    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
-    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
+    ``bi, bj, bk``: Σ w v_node times the node's stencil offset i, j, k; B = (Σ w v (i, j, k)ᵀ − v fxᵀ) dx and
+    C = 4 B / dx² (quadratic B-splines).
     """
-    tid = wp.tid()
-    particle = tid < n_particles
-    env = int(0)
-    held = bool(False)
-    xp = wp.vec3()
-    if particle:
-        env = tid / n_per_env
-        if substep >= env_steps[env]:
-            return
-        c = code[tid]
-        if c >= HELD_FLAG:
-            held = True
-            if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
-                v[tid] = wp.vec3(0.0)
-                C[tid] = wp.mat33(0.0)
-                return
-        xp = x[tid]
-    else:
-        t = tid - n_particles
-        env = t / m_per_env
-        if substep >= env_steps[env]:
-            return
-        if t_held[t] != 0:
-            return
-        xp = tx[t]
-    if not wp.isfinite(xp):
+    B = (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx)) * dx
+    C[tid] = (4.0 * inv_dx * inv_dx) * B
+    if held:  # clamped material: stays put, deforms with the grid
+        v[tid] = wp.vec3(0.0)
         return
+    xn = xp + dt * vel
+    if has_ground != 0 and xn[2] < ground_z:
+        xn = wp.vec3(xn[0], xn[1], ground_z)
+    x[tid] = xn
+    v[tid] = vel
+
+
+@wp.func(inline=True)
+def tracked_point_update(t: int, xp: wp.vec3, env: int, grid_v: wp.array(dtype=wp.vec4),
+                         env_dt: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3), nodes_per_env: int,
+                         dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int, ground_z: float,
+                         tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3)):
+    """Move tracked point ``t`` with a mass-weighted affine least-squares fit of its stencil's node velocities."""
     origin = env_origin[env]
     base = stencil_base(xp, origin, inv_dx)
     if not stencil_inside(base, dims):
@@ -458,35 +478,6 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
     jb = int(base[1])
     kb = int(base[2])
     block = env * nodes_per_env
-    vel = wp.vec3(0.0)
-    if particle:
-        # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
-        bi = wp.vec3(0.0)
-        bj = wp.vec3(0.0)
-        bk = wp.vec3(0.0)
-        for i in range(3):
-            for j in range(3):
-                wij = w[i, 0] * w[j, 1]
-                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-                for k in range(3):
-                    gv = grid_v[row + k]
-                    wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
-                    vel = vel + wv
-                    bi = bi + float(i) * wv
-                    bj = bj + float(j) * wv
-                    bk = bk + float(k) * wv
-        B = (wp.matrix_from_cols(bi, bj, bk) - wp.outer(vel, fx)) * dx
-        C[tid] = (4.0 * inv_dx * inv_dx) * B
-        if held:  # clamped material: stays put, deforms with the grid
-            v[tid] = wp.vec3(0.0)
-            return
-        xn = xp + dt * vel
-        if has_ground != 0 and xn[2] < ground_z:
-            xn = wp.vec3(xn[0], xn[1], ground_z)
-        x[tid] = xn
-        v[tid] = vel
-        return
-    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
     W = float(0.0)
     sd = wp.vec3(0.0)
     sv = wp.vec3(0.0)
@@ -511,7 +502,6 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                     Mvd = Mvd + wm * wp.outer(vi, dpos)
                     vlo = wp.min(vlo, vi)
                     vhi = wp.max(vhi, vi)
-    t = tid - n_particles
     vt = tv[t]
     if W > 0.0:
         dbar = sd / W
@@ -532,6 +522,87 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         xn = wp.vec3(xn[0], xn[1], ground_z)
     tx[t] = xn
     tv[t] = vt
+
+
+@wp.kernel
+def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
+        tv: wp.array(dtype=wp.vec3),
+        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
+        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
+        step_base: wp.array(dtype=wp.int32),
+        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
+        inv_dx: float, has_ground: int, ground_z: float, substep: int):
+    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+
+    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
+    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
+    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
+    """
+    tid = wp.tid()
+    step = substep + step_base[0]
+    if tid >= n_particles:  # tracked point
+        t = tid - n_particles
+        tenv = t / m_per_env
+        if step >= env_steps[tenv] or t_held[t] != 0:
+            return
+        xt = tx[t]
+        if wp.isfinite(xt):
+            tracked_point_update(t, xt, tenv, grid_v, env_dt, env_origin, nodes_per_env, dims, dx, inv_dx,
+                                 has_ground, ground_z, tx, tv)
+        return
+    env = tid / n_per_env
+    if step >= env_steps[env]:
+        return
+    c = code[tid]
+    held = c >= HELD_FLAG
+    if held:
+        if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
+            v[tid] = wp.vec3(0.0)
+            C[tid] = wp.mat33(0.0)
+            return
+    xp = x[tid]
+    if not wp.isfinite(xp):
+        return
+    origin = env_origin[env]
+    base = stencil_base(xp, origin, inv_dx)
+    if not stencil_inside(base, dims):
+        return
+    fx = (xp - origin) * inv_dx - base
+    w = bspline_weights(fx)
+    ib = int(base[0])
+    jb = int(base[1])
+    kb = int(base[2])
+    block = env * nodes_per_env
+    # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
+    vel = wp.vec3(0.0)
+    bi = wp.vec3(0.0)
+    bj = wp.vec3(0.0)
+    bk = wp.vec3(0.0)
+    for i in range(3):
+        for j in range(3):
+            wij = w[i, 0] * w[j, 1]
+            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+            for k in range(3):
+                gv = grid_v[row + k]
+                wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
+                vel = vel + wv
+                bi = bi + float(i) * wv
+                bj = bj + float(j) * wv
+                bk = bk + float(k) * wv
+    particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx, has_ground, ground_z, x, v, C)
+
+
+@wp.kernel
+def set_step(step_base: wp.array(dtype=wp.int32), value: int):
+    """``step_base[0] = value`` (the substep index that a graph of substeps starts from)."""
+    step_base[0] = value
+
+
+@wp.kernel
+def advance_step(step_base: wp.array(dtype=wp.int32), count: int):
+    """``step_base[0] += count`` (the last node of a graph of ``count`` substeps)."""
+    step_base[0] = step_base[0] + count
 
 
 # ------------------------------------------------------------------------------ per-frame kernels

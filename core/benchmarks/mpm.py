@@ -38,6 +38,23 @@ SPACING = 0.005  # m between particles; dx = 2 * SPACING
 DROP_SPEED = 1.0  # m/s
 
 
+VARIANTS = {
+    "default": {},
+    "baseline": {"p2g_scatter": "atomic", "split_g2p": False, "graph_substeps": 0},
+    "graphs": {"p2g_scatter": "atomic", "split_g2p": False, "graph_substeps": 16},
+    "split": {"p2g_scatter": "atomic", "split_g2p": True, "graph_substeps": 16},
+    "vector": {"p2g_scatter": "vector", "split_g2p": True, "graph_substeps": 16},
+    "warp": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16},
+    "warp-b128": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "block_dim": 128},
+    "warp-b512": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "block_dim": 512},
+    "warp-sort25": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "sort_interval": 25},
+}
+"""Solver-setting presets compared by ``--variants`` (each builds on the solver's defaults; ``default`` = as
+shipped: on CUDA the same as ``warp``).  ``baseline`` is the kernel layout measured before the GPU work
+(Warp vec4 atomics, one G2P kernel, a Python launch per kernel)."""
+TUNING_FIELDS = ("p2g_scatter", "split_g2p", "graph_substeps", "block_dim", "sort_interval")
+
+
 def add_arguments(p):
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--sizes", default="50000,200000,1000000",
@@ -45,6 +62,11 @@ def add_arguments(p):
     p.add_argument("--runs", type=int, default=3, help="timed runs per size and solver (median; default 3)")
     p.add_argument("--substeps", type=int, default=None,
                    help="substeps per timed run (default: 100 on a GPU, 10 on the CPU)")
+    p.add_argument("--variants", default="default",
+                   help="comma-separated solver-setting presets to compare in the same run: "
+                        + ", ".join(VARIANTS) + " (default: default)")
+    p.add_argument("--no-breakdown", action="store_true",
+                   help="skip the per-kernel timing run of each variant (CUDA events on a GPU)")
     p.add_argument("--no-reference", action="store_true", help="skip the reference solver")
     p.add_argument("--no-sort", action="store_true",
                    help="run our solver without its per-chunk cell sort of the particles (to measure what it buys)")
@@ -256,6 +278,18 @@ def _label(count: int) -> str:
     return f"{count / 1e6:g}M" if count >= 1_000_000 else f"{count / 1e3:g}k" if count >= 1000 else str(count)
 
 
+def _breakdown(sim) -> dict:
+    """Per-kernel time of one profiled run (CUDA events on a GPU; graphs off), in µs per substep, plus the run's
+    wall time and what the kernels leave of it (host work, launches, synchronisation)."""
+    prof = sim.profile([])
+    steps = prof["substeps"]
+    kernels = {k: v for k, v in prof.items() if k not in ("wall", "substeps", "particle_substeps")}
+    out = {f"{k}_us_per_substep": 1e6 * v / steps for k, v in sorted(kernels.items())}
+    out["profiled_run_s"] = prof["wall"]
+    out["outside_kernels_s"] = prof["wall"] - sum(kernels.values())
+    return out
+
+
 def run(args) -> list[dict]:
     from ...core.errors import UserError
     from ...solvers import mpm
@@ -274,6 +308,10 @@ def run(args) -> list[dict]:
         raise UserError("--sizes needs particle counts of at least 8")
     if args.runs < 1:
         raise UserError("--runs must be at least 1")
+    variants = [v.strip() for v in str(args.variants).split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown or not variants:
+        raise UserError(f"--variants: unknown preset(s) {unknown}; known: {', '.join(VARIANTS)}")
     substeps = args.substeps or (100 if device.startswith("cuda") else 10)
     if substeps < 1:
         raise UserError("--substeps must be at least 1")
@@ -291,14 +329,8 @@ def run(args) -> list[dict]:
         sim = mpm.prepare(body, HomogeneousMaterial(E_BENCH, NU_BENCH, RHO_BENCH, "jelly"), scenario,
                           [0.0, substeps * dt], device=device,
                           settings={"dx": dx, "max_dt": dt, "sort_particles": not args.no_sort})
-        last = {"traj": sim.run([])}  # warm-up
-        ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
-        ours_rate = n * substeps / statistics.median(ours)
-        label = _label(requested) + (", unsorted" if args.no_sort else "")
-        entry = {"case": f"{label} particles, jelly, drop", "device": described,
-                 "metric": "particle_substeps_per_s", "value": ours_rate, "runs": args.runs,
-                 "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ours),
-                 "grid_dims": last["traj"].meta["grid_dims"]}
+        shipped = {f: getattr(sim.settings, f) for f in TUNING_FIELDS}
+        ref_rate = ref_x = None
         if not args.no_reference:
             velocity = np.tile([0.0, 0.0, -DROP_SPEED], (n, 1))
             ref = ReferenceAPIC(wp, device, points, velocity, dx, dt, gravity, 0.0)
@@ -308,19 +340,43 @@ def run(args) -> list[dict]:
                 ref = ReferenceAPIC(wp, device, points, velocity, dx, dt, gravity, 0.0)
                 ref_times += _timed(lambda: ref.step(substeps), 1, wp, device)
             ref_rate = n * substeps / statistics.median(ref_times)
-            # same physics: compare final particle positions after the same substeps
-            check = sim.run([], particle_states=True).particle_positions[-1]
-            diff = float(np.abs(check - ref.x.numpy()).max())
-            entry["vs"] = {"what": "reference PhysGaussian-style APIC kernels, same run", "ratio": ours_rate / ref_rate}
-            entry["max_position_difference_m"] = diff
-            results.append(entry)
+            ref_x = ref.x.numpy()
             results.append({"case": f"{_label(requested)} particles, jelly, drop, reference APIC", "device": described,
                             "metric": "particle_substeps_per_s", "value": ref_rate, "runs": args.runs,
                             "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ref_times),
                             "grid_dims": [ref.n_grid] * 3})
-        else:
+            print(f"  {n:,} particles: reference {ref_rate:.3g} particle-substeps/s", flush=True)
+        first_x = None
+        for variant in variants:
+            for name, value in {**shipped, **VARIANTS[variant]}.items():
+                setattr(sim.settings, name, value)
+            last = {"traj": sim.run([])}  # warm-up (uploads the initial state, captures graphs)
+            ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
+            ours_rate = n * substeps / statistics.median(ours)
+            label = _label(requested) + (", unsorted" if args.no_sort else "")
+            entry = {"case": f"{label} particles, jelly, drop" + ("" if variant == "default" else f", {variant}"),
+                     "device": described, "metric": "particle_substeps_per_s", "value": ours_rate, "runs": args.runs,
+                     "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ours),
+                     "grid_dims": last["traj"].meta["grid_dims"],
+                     "settings": {f: getattr(sim.settings, f) for f in TUNING_FIELDS}}
+            # same physics: final particle positions after the same substeps (order: the input points)
+            x = sim.run([], particle_states=True).particle_positions[-1]
+            if first_x is None:
+                first_x = x
+            else:
+                entry["max_position_difference_vs_first_variant_m"] = float(np.abs(x - first_x).max())
+            if ref_rate is not None:
+                entry["vs"] = {"what": "reference PhysGaussian-style APIC kernels, same run",
+                               "ratio": ours_rate / ref_rate}
+                entry["max_position_difference_m"] = float(np.abs(x - ref_x).max())
+            if not args.no_breakdown:
+                entry["breakdown"] = _breakdown(sim)
             results.append(entry)
-        print(f"  {n:,} particles: {ours_rate:.3g} particle-substeps/s"
-              + (f" (reference {results[-1]['value']:.3g}, x{entry['vs']['ratio']:.2f}; positions agree to "
-                 f"{entry['max_position_difference_m']:.1e} m)" if "vs" in entry else ""), flush=True)
+            parts = ""
+            if "breakdown" in entry:
+                parts = "; µs/substep " + ", ".join(f"{k.replace('_us_per_substep', '')} {v:.1f}"
+                                                     for k, v in entry["breakdown"].items() if k.endswith("substep"))
+            print(f"  {n:,} particles, {variant}: {ours_rate:.3g} particle-substeps/s"
+                  + (f" (x{entry['vs']['ratio']:.2f} the reference; positions agree to "
+                     f"{entry['max_position_difference_m']:.1e} m)" if "vs" in entry else "") + parts, flush=True)
     return results
