@@ -10,11 +10,12 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
    shipped model is trained on), and predicts the α sweep with the model (default: the shipped
    ``models/default``).  Copies of the objects share the prediction (their pipeline record is copied;
    the fingerprint ignores placement).
-3. Bakes the plant with **MPM at α = 0, 0.5 and 1** (three copies side by side; the pot is clamped and
-   the rest pushed sideways) and the duck, dropped on the ground, once with **LBS** and once with the
-   **spring-mass** solver (α = 0.5).  The MPM grid of each bake is sized to a compute budget from the
-   predicted stiffness (the time step shrinks with the wave speed), so the demo's run time stays bounded
-   whatever the model predicts.
+3. Bakes the plant with **MPM at α = 0, 0.5 and 1** and with the **spring-mass** solver at α = 0.5
+   (four copies side by side; each pot is clamped and the rest pushed sideways), and the duck, dropped
+   on the ground, with **LBS** at α = 0.5.  The MPM grid of each bake is sized to a compute budget from
+   the predicted stiffness (the time step shrinks with the wave speed), so the demo's run time stays
+   bounded whatever the model predicts; a spring-mass bake whose predicted springs would need more than
+   :data:`SPRING_SUBSTEP_LIMIT` substeps per frame stops with a message instead.
 4. Saves ``<out>/unipixie_demo.blend`` (bakes as shape keys or Mesh Cache files next to it), renders a
    contact sheet of frames, a picture of the plant's material field per α, and ``summary.json`` with
    how far every baked object moved and how different the α = 0 and α = 1 bakes are.
@@ -60,8 +61,9 @@ class DemoPlan:
     sweep (``None``: the model's default, 11).  frames / fps: the baked clip.  mpm_budget: particle ×
     substep updates allowed per MPM bake (sets its grid, within ``mpm_cells`` cells across the object).
     lbs_settings / spring_settings: solver settings.  sheet_frames / sheet_size: the contact sheet.
-    plant_alphas: the MPM bakes; duck_alpha: the LBS and spring-mass bakes.  push_speed: m/s given to
-    the plant (its pot is held); drop_height: m of the duck above the ground.
+    plant_alphas: the plant's MPM bakes; spring_alpha: the plant's spring-mass bake; lbs_alpha: the
+    duck's LBS bake.  push_speed: m/s given to the plants (their pots are held); drop_height: m of the
+    duck above the ground.
     """
 
     name: str
@@ -77,16 +79,25 @@ class DemoPlan:
     sheet_frames: int
     sheet_size: tuple
     plant_alphas: tuple = (0.0, 0.5, 1.0)
-    duck_alpha: float = 0.5
+    spring_alpha: float = 0.5
+    lbs_alpha: float = 0.5
     push_speed: float = 0.8
     drop_height: float = 0.25
 
 
+SPRING_SUBSTEP_LIMIT = 3000
+"""The demo's spring-mass bakes stop (and are reported) when the predicted springs need more substeps per
+frame than this, instead of running for an hour."""
+
 FULL = DemoPlan("full", views=24, resolution=224, sweep_count=None, frames=48, fps=24, mpm_budget=1.2e8,
-                mpm_cells=(10, 32), lbs_settings={}, spring_settings={}, sheet_frames=6, sheet_size=(640, 360))
+                mpm_cells=(10, 32), lbs_settings={},
+                spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=6,
+                sheet_size=(720, 360))
 QUICK = DemoPlan("quick", views=6, resolution=224, sweep_count=3, frames=12, fps=24, mpm_budget=1.2e7,
                  mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
-                 spring_settings={}, sheet_frames=4, sheet_size=(480, 270))
+                 spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
+                 sheet_size=(480, 240))
+SOLVER_LABELS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "spring-mass"}
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -118,6 +129,7 @@ class DemoResult:
     field_pictures: list
     objects: list
     bakes: list
+    failed: list
     alpha_difference: float
     seconds: float
     stage_seconds: dict
@@ -243,7 +255,9 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     """Run the demo (see the module docstring) into ``out_dir``; returns a :class:`DemoResult`.
 
     It starts a new, empty Blender scene in the current session (the command line's), so run it from the
-    command line, not inside a Blender session with unsaved work.
+    command line, not inside a Blender session with unsaved work.  A bake that fails (e.g. a prediction too
+    stiff for the demo's substep limit) is reported and recorded in the summary (``failed``); the other
+    bakes and the pictures are still made.
     """
     import bpy  # noqa: F401  (fails early and clearly without Blender)
 
@@ -274,39 +288,37 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         objects_dir = out / "objects"
         objects_dir.mkdir(exist_ok=True)
         sources = {}
-        for i, spec in enumerate((PLANT, DUCK)):
+        for spec in (PLANT, DUCK):
             po = procedural.generate(spec.index, seed=spec.seed, semantic_class=spec.semantic_class)
             glb = po.export_glb(objects_dir / f"{spec.semantic_class}.glb")
-            sources[spec.semantic_class] = ds.import_solid(glb, f"{spec.label} (source)")
-            p.step(0.5 / 2)
+            sources[spec.semantic_class] = ds.import_solid(glb, spec.label)
+            p.step(0.25)
         plant, duck = sources["potted_plant"], sources["rubber_duck"]
         ds.part_vertex_group(plant, "pot", CLAMP_GROUP)
         ground = ds.add_ground()
-        pw = float(np.ptp(np.asarray([plant.matrix_world @ v.co for v in plant.data.vertices])[:, 0]))
-        gap = max(0.35, 1.6 * pw)
-        plants, ducks = [], []
-        for k, a in enumerate(plan.plant_alphas):
-            x = (k - 1) * gap
-            obj = plant if k == 0 else ds.duplicate(plant, f"Potted plant α={a:g}", x, 0.0)
-            if k == 0:
-                obj.name = obj.data.name = f"Potted plant α={a:g}"
-                ds.place_on_ground(obj, x, 0.0)
-            _setup(obj, solver="mpm", alpha=a, ground=ground, device=device, clamp_group=CLAMP_GROUP,
-                   velocity=(plan.push_speed, 0.0, 0.0))
-            ds.add_label(f"MPM, α = {a:g}", (x, -0.2, -0.06))
-            plants.append(obj)
-        for k, solver in enumerate(("lbs", "spring_mass")):
-            x = 1.5 * gap + k * 0.45 * gap
-            name = f"Rubber duck {'LBS' if solver == 'lbs' else 'spring-mass'}"
-            obj = duck if k == 0 else ds.duplicate(duck, name, x, -0.25, plan.drop_height)
+        pw = float(np.ptp(np.asarray([v.co[0] for v in plant.data.vertices])))
+        gap = max(0.35, 1.5 * pw)
+        # the plant four times in a row: MPM at each α of the plan, then the spring-mass solver
+        bakes_todo = [("mpm", float(a)) for a in plan.plant_alphas] + [("spring_mass", plan.spring_alpha)]
+        plants = []
+        for k, (solver, a) in enumerate(bakes_todo):
+            x = (k - 1.5) * gap
+            label = f"{SOLVER_LABELS[solver]} α={a:g}"
+            name = f"{PLANT.label} {label}"
+            obj = plant if k == 0 else ds.duplicate(plant, name, x, 0.0)
             if k == 0:
                 obj.name = obj.data.name = name
-                ds.place_on_ground(obj, x, -0.25, plan.drop_height)
-            _setup(obj, solver=solver, alpha=plan.duck_alpha, ground=ground, device=device)
-            ds.add_label(f"{'LBS' if solver == 'lbs' else 'spring-mass'}, α = {plan.duck_alpha:g}", (x, -0.35, -0.06),
-                         size=0.04)
-            ducks.append(obj)
-        ds.add_camera(target=(0.45 * gap, 0.0, 0.3), distance=1.2 + 2.0 * gap)
+                ds.place_on_ground(obj, x, 0.0)
+            _setup(obj, solver=solver, alpha=a, ground=ground, device=device, clamp_group=CLAMP_GROUP,
+                   velocity=(plan.push_speed, 0.0, 0.0))
+            ds.add_label(label, (x, -0.22, 0.01))
+            plants.append(obj)
+        x = 2.5 * gap
+        duck.name = duck.data.name = f"{DUCK.label} {SOLVER_LABELS['lbs']} α={plan.lbs_alpha:g}"
+        ds.place_on_ground(duck, x, -0.3, plan.drop_height)
+        _setup(duck, solver="lbs", alpha=plan.lbs_alpha, ground=ground, device=device)
+        ds.add_label(f"{SOLVER_LABELS['lbs']} α={plan.lbs_alpha:g}", (x, -0.42, 0.01))
+        ds.add_camera(target=(0.5 * gap, 0.0, 0.36), distance=1.6 + 2.4 * gap)
         blend = out / BLEND_NAME
         bpy_save(blend)          # saved first: bakes write their point caches next to it
         p.step(0.5)
@@ -315,42 +327,48 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         # 2. render views + features --------------------------------------------------------------
         p = stages.sub("features", f"rendering {plan.views} views per object and extracting the offline features "
                                    "(untrained ViT, not CLIP)")
-        for i, src in enumerate((plants[0], ducks[0])):
+        for src in (plants[0], duck):
             result = pio.run_to_end(pio.features_step(src, settings), p.sub(0.5, 1.0, src.name))
             say(f"         {src.name}: {int(result.grid.occupancy.sum())} voxels, D = {result.grid.dim} "
-                f"({'cache' if result.cache_hit else f'{sum(result.timings.values()):.1f} s'})")
+                f"({'from the cache' if result.cache_hit else f'{sum(result.timings.values()):.1f} s'})")
         stages.done()
 
         # 3. predict the α sweeps -----------------------------------------------------------------
         count = settings.resolved_sweep_count()
         p = stages.sub("predict", f"predicting the α sweep ({count} values of α in one batched pass per object)")
-        heads = {plants[0].name: ("mpm",), ducks[0].name: ("mpm", "lbs", "spring_mass")}
-        for src in (plants[0], ducks[0]):
+        heads = {plants[0].name: ("mpm", "spring_mass"), duck.name: ("mpm", "lbs")}
+        for src in (plants[0], duck):
             s = PipelineSettings(**{**settings.to_dict(), "heads": heads[src.name]})
             t = time.perf_counter()
-            sweep = pio.run_to_end(pio.predict_step(src, s), p.sub(0.5, 1.0, src.name))
+            pio.run_to_end(pio.predict_step(src, s), p.sub(0.5, 1.0, src.name))
             say(f"         {src.name}: heads {', '.join(heads[src.name])} in {time.perf_counter() - t:.1f} s")
-        for group in (plants, ducks):
-            for obj in group[1:]:
-                pio.copy_pipeline(group[0], obj)
+        for obj in plants[1:]:
+            pio.copy_pipeline(plants[0], obj)      # copies share the prediction (placement-invariant fingerprint)
         stages.done()
 
         # 4. bakes ----------------------------------------------------------------------------------
-        p = stages.sub("bake", f"baking {len(plants)} MPM bakes, one LBS and one spring-mass bake "
-                               f"({plan.frames} frames at {plan.fps} fps)")
-        bakes = []
-        jobs = [(o, "mpm", float(a)) for o, a in zip(plants, plan.plant_alphas)]
-        jobs += [(ducks[0], "lbs", plan.duck_alpha), (ducks[1], "spring_mass", plan.duck_alpha)]
+        jobs = [(o, solver, a) for o, (solver, a) in zip(plants, bakes_todo)] + [(duck, "lbs", plan.lbs_alpha)]
+        p = stages.sub("bake", f"baking {len(jobs)} objects ({plan.frames} frames at {plan.fps} fps)")
+        bakes, failed = [], []
         for obj, solver, alpha in jobs:
             pio.sync_plan(obj, settings)
             solver_settings = _solver_settings(obj, solver, alpha, plan, say)
-            rep = pio.run_to_end(pio.bake_step(obj, settings, solver_settings=solver_settings),
-                                 p.sub(1.0 / len(jobs), 1.0, obj.name))
+            try:
+                rep = pio.run_to_end(pio.bake_step(obj, settings, solver_settings=solver_settings),
+                                     p.sub(1.0 / len(jobs), 1.0, obj.name))
+            except UserError as exc:
+                from .errors import CancelledError
+
+                if isinstance(exc, CancelledError):
+                    raise
+                failed.append({"object": obj.name, "solver": solver, "alpha": alpha, "error": str(exc)})
+                say(f"         {obj.name}: {solver} bake FAILED: {exc}")
+                continue
             moved = _max_displacement(obj, plan.frames)
             bakes.append(BakeSummary(obj.name, solver, alpha, rep.material, rep.mode, round(rep.simulate_seconds, 2),
                                      moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}))
-            say(f"         {obj.name}: {solver} at α = {alpha:g} → {rep.mode.replace('_', ' ')}, simulated in "
-                f"{rep.simulate_seconds:.1f} s, moved up to {100 * moved:.1f} cm")
+            say(f"         {obj.name}: {rep.mode.replace('_', ' ')}, simulated in {rep.simulate_seconds:.1f} s, "
+                f"moved up to {100 * moved:.1f} cm")
         bpy_save(blend)
         stages.done()
 
@@ -364,15 +382,21 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         fields = field_pictures(sweep_path, plan.plant_alphas, out, title=PLANT.label)
         p.step(0.5)
         stages.done()
+        mpm = [o for o, (solver, _) in zip(plants, bakes_todo) if solver == "mpm"]
+        baked = {b.object for b in bakes}
+        difference = (_alpha_difference(mpm[0], mpm[-1], plan.frames)
+                      if mpm[0].name in baked and mpm[-1].name in baked else float("nan"))
 
-    difference = _alpha_difference(plants[0], plants[-1], plan.frames)
     result = DemoResult(out_dir=str(out), blend=str(blend), contact_sheet=str(sheet),
                         field_pictures=[str(f) for f in fields], objects=[str(p) for p in sorted(objects_dir.glob("*.glb"))],
-                        bakes=[asdict(b) for b in bakes], alpha_difference=difference,
+                        bakes=[asdict(b) for b in bakes], failed=failed, alpha_difference=difference,
                         seconds=round(time.perf_counter() - t_start, 1), stage_seconds=stages.seconds,
                         checkpoint=str(ckpt), plan=plan.name)
     (out / SUMMARY_NAME).write_text(json.dumps(result.to_dict(), indent=2) + "\n")
-    say(f"Done in {result.seconds:.0f} s.  α = 0 and α = 1 plants differ by up to {100 * difference:.1f} cm.")
+    say(f"Done in {result.seconds:.0f} s.  The α = {plan.plant_alphas[0]:g} and α = {plan.plant_alphas[-1]:g} MPM "
+        f"plants differ by up to {100 * difference:.1f} cm.")
+    for f in failed:
+        say(f"  FAILED: {f['object']} ({f['solver']}): {f['error']}")
     say(f"  Blender file:    {blend}  (open it, press Space to play; the UniPixie panel shows every step done)")
     say(f"  contact sheet:   {sheet}")
     say(f"  field pictures:  {', '.join(str(f) for f in fields)}")

@@ -436,6 +436,9 @@ def _atomic_savez(path: Path, arrays: dict) -> None:
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; a measurement is an ordinary file
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

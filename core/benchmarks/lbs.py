@@ -104,6 +104,8 @@ def run(args) -> list[dict]:
     results = []
 
     def bench(case, mesh, effects_lists=None, metric="steps_per_s"):
+        if args.line_search_candidates:   # a non-default setting is its own case (record() keys on the case)
+            case += f", {args.line_search_candidates} line-search step lengths per launch"
         body = Body.from_mesh(mesh)
         t0 = time.perf_counter()
         sim = lbs.prepare(body, material, scenario, frames, device=device, settings=settings)

@@ -140,7 +140,7 @@ def add_ground(size: float = 20.0):
     return ground
 
 
-def add_label(text: str, location, size: float = 0.06):
+def add_label(text: str, location, size: float = 0.05):
     cu = bpy.data.curves.new(f"Label {text}", "FONT")
     cu.body = text
     cu.size = size

@@ -64,8 +64,14 @@ def run(args) -> int:
                         "c.main()\" -- demo") from None
     from ..demo import run_demo
 
+    import sys
+
     device = resolve_device(args.device)
     with Progress(total=100, description="demo") as progress:
-        run_demo(args.out or DEFAULT_OUT, quick=args.quick, checkpoint=args.checkpoint, device=device,
-                 progress=progress)
+        result = run_demo(args.out or DEFAULT_OUT, quick=args.quick, checkpoint=args.checkpoint, device=device,
+                          progress=progress)
+    if result.failed:
+        print(f"unipixie demo: {len(result.failed)} bake(s) failed (see above and {result.out_dir}/summary.json)",
+              file=sys.stderr)
+        return 3
     return 0

@@ -110,6 +110,9 @@ def _write_atomic(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; a report is an ordinary file
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -163,7 +166,12 @@ def plot_error_over_time(d, path: Path) -> None:
     ax.set_xlabel("time [s]")
     ax.set_ylabel("RMSE per instant [mm]")
     ax.set_title("Error over time")
-    ax.set_ylim(bottom=0)
+    top = 1e3 * float(np.nanmax(d.baseline.per_time)) if np.isfinite(d.baseline.per_time).any() else nr
+    if top > 30 * nr:  # the fall spans decades: a log axis shows the final error next to the noise
+        ax.set_yscale("log")
+        ax.set_ylim(bottom=0.2 * nr)
+    else:
+        ax.set_ylim(bottom=0)
     ax.legend(fontsize=7, loc="upper left")
     _save(fig, path)
 
