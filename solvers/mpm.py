@@ -816,11 +816,12 @@ class MPMSimulation(Simulation):
                                               inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, G["v"],
                                                       Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, nodes,
                                                       dims, dx, inv_dx, has_ground, ground_z, 0])))
-            if len(self.tracked_rest):
+            if len(self.tracked_rest):  # the combined kernel over the tracked points alone (n_particles = 0)
                 launches.append(("g2p_tracked", wp.launch(
-                    kc.g2p_tracked, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
-                    inputs=[T["x"], T["v"], T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"], buf.step_base,
-                            M_alloc, nodes, dims, dx, inv_dx, has_ground, ground_z, 0])))
+                    k.g2p, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
+                    inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
+                            Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, 0, M_alloc, nodes, dims, dx,
+                            inv_dx, has_ground, ground_z, 0])))
         else:
             launches.append(("g2p", wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"],

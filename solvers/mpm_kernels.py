@@ -461,12 +461,46 @@ def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3
     v[tid] = vel
 
 
-@wp.func(inline=True)
-def tracked_point_update(t: int, xp: wp.vec3, env: int, grid_v: wp.array(dtype=wp.vec4),
-                         env_dt: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3), nodes_per_env: int,
-                         dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int, ground_z: float,
-                         tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3)):
-    """Move tracked point ``t`` with a mass-weighted affine least-squares fit of its stencil's node velocities."""
+@wp.kernel
+def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
+        tv: wp.array(dtype=wp.vec3),
+        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
+        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
+        step_base: wp.array(dtype=wp.int32),
+        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
+        inv_dx: float, has_ground: int, ground_z: float, substep: int):
+    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+
+    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
+    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
+    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
+    """
+    tid = wp.tid()
+    particle = tid < n_particles
+    env = int(0)
+    held = bool(False)
+    xp = wp.vec3()
+    if particle:
+        env = tid / n_per_env
+        if substep + step_base[0] >= env_steps[env]:
+            return
+        c = code[tid]
+        if c >= HELD_FLAG:
+            held = True
+            if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
+                v[tid] = wp.vec3(0.0)
+                C[tid] = wp.mat33(0.0)
+                return
+        xp = x[tid]
+    else:
+        t = tid - n_particles
+        env = t / m_per_env
+        if substep + step_base[0] >= env_steps[env] or t_held[t] != 0:
+            return
+        xp = tx[t]
+    if not wp.isfinite(xp):
+        return
     origin = env_origin[env]
     base = stencil_base(xp, origin, inv_dx)
     if not stencil_inside(base, dims):
@@ -478,6 +512,26 @@ def tracked_point_update(t: int, xp: wp.vec3, env: int, grid_v: wp.array(dtype=w
     jb = int(base[1])
     kb = int(base[2])
     block = env * nodes_per_env
+    # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
+    vel = wp.vec3(0.0)
+    bi = wp.vec3(0.0)
+    bj = wp.vec3(0.0)
+    bk = wp.vec3(0.0)
+    if particle:
+        for i in range(3):
+            for j in range(3):
+                wij = w[i, 0] * w[j, 1]
+                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                for k in range(3):
+                    gv = grid_v[row + k]
+                    wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
+                    vel = vel + wv
+                    bi = bi + float(i) * wv
+                    bj = bj + float(j) * wv
+                    bk = bk + float(k) * wv
+        particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, has_ground, ground_z, x, v, C)
+        return
+    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
     W = float(0.0)
     sd = wp.vec3(0.0)
     sv = wp.vec3(0.0)
@@ -502,6 +556,7 @@ def tracked_point_update(t: int, xp: wp.vec3, env: int, grid_v: wp.array(dtype=w
                     Mvd = Mvd + wm * wp.outer(vi, dpos)
                     vlo = wp.min(vlo, vi)
                     vhi = wp.max(vhi, vi)
+    t = tid - n_particles
     vt = tv[t]
     if W > 0.0:
         dbar = sd / W
@@ -522,75 +577,6 @@ def tracked_point_update(t: int, xp: wp.vec3, env: int, grid_v: wp.array(dtype=w
         xn = wp.vec3(xn[0], xn[1], ground_z)
     tx[t] = xn
     tv[t] = vt
-
-
-@wp.kernel
-def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
-        tv: wp.array(dtype=wp.vec3),
-        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
-        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
-        step_base: wp.array(dtype=wp.int32),
-        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
-        inv_dx: float, has_ground: int, ground_z: float, substep: int):
-    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
-
-    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
-    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
-    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
-    """
-    tid = wp.tid()
-    step = substep + step_base[0]
-    if tid >= n_particles:  # tracked point
-        t = tid - n_particles
-        tenv = t / m_per_env
-        if step >= env_steps[tenv] or t_held[t] != 0:
-            return
-        xt = tx[t]
-        if wp.isfinite(xt):
-            tracked_point_update(t, xt, tenv, grid_v, env_dt, env_origin, nodes_per_env, dims, dx, inv_dx,
-                                 has_ground, ground_z, tx, tv)
-        return
-    env = tid / n_per_env
-    if step >= env_steps[env]:
-        return
-    c = code[tid]
-    held = c >= HELD_FLAG
-    if held:
-        if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
-            v[tid] = wp.vec3(0.0)
-            C[tid] = wp.mat33(0.0)
-            return
-    xp = x[tid]
-    if not wp.isfinite(xp):
-        return
-    origin = env_origin[env]
-    base = stencil_base(xp, origin, inv_dx)
-    if not stencil_inside(base, dims):
-        return
-    fx = (xp - origin) * inv_dx - base
-    w = bspline_weights(fx)
-    ib = int(base[0])
-    jb = int(base[1])
-    kb = int(base[2])
-    block = env * nodes_per_env
-    # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
-    vel = wp.vec3(0.0)
-    bi = wp.vec3(0.0)
-    bj = wp.vec3(0.0)
-    bk = wp.vec3(0.0)
-    for i in range(3):
-        for j in range(3):
-            wij = w[i, 0] * w[j, 1]
-            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-            for k in range(3):
-                gv = grid_v[row + k]
-                wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
-                vel = vel + wv
-                bi = bi + float(i) * wv
-                bj = bj + float(j) * wv
-                bk = bk + float(k) * wv
-    particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx, has_ground, ground_z, x, v, C)
 
 
 @wp.kernel

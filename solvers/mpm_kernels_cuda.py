@@ -16,9 +16,10 @@ transfers and the tracked-point fit); what differs is how the work is laid out o
     group's first lane issues the vector reduction.  Groups need not be contiguous lanes (the order
     decays between sorts).  Sums are reassociated, nothing else changes.
 
-* **G2P** split into :data:`g2p_particles` (no tracked-point code, so far fewer registers and higher
-  occupancy: the fit needs ~170 registers) and :data:`g2p_tracked`; node loads are one 16-byte
-  read-only load (``__ldg``) each.
+* **G2P** for the particles alone, :data:`g2p_particles` (no tracked-point code, so far fewer registers
+  and higher occupancy: the tracked points' fit needs ~170 registers); node loads are one 16-byte
+  read-only load (``__ldg``) each.  The tracked points are then moved by :data:`.mpm_kernels.g2p`
+  launched over them alone (``n_particles = 0``).
 
 Every native snippet is guarded by ``__CUDA_ARCH__``; on the CPU the kernels run with plain atomics
 and loads and give bitwise the results of :mod:`.mpm_kernels` (which the tests check).  The kernels
@@ -31,7 +32,7 @@ from __future__ import annotations
 import warp as wp
 
 from .mpm_kernels import (HELD_FLAG, ClassLaw, bspline_weights, particle_advect, particle_stress_elastic,
-                          particle_stress_general, stencil_base, stencil_inside, tracked_point_update)
+                          particle_stress_general, stencil_base, stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -335,20 +336,3 @@ def g2p_particles(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.
                 bj = bj + float(j) * wv
                 bk = bk + float(k) * wv
     particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx, has_ground, ground_z, x, v, C)
-
-
-@wp.kernel
-def g2p_tracked(tx: wp.array(dtype=wp.vec3), tv: wp.array(dtype=wp.vec3), t_held: wp.array(dtype=wp.int32),
-                grid_v: wp.array(dtype=wp.vec4), env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
-                env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32), m_per_env: int,
-                nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int, ground_z: float,
-                substep: int):
-    """The tracked-point half of :data:`.mpm_kernels.g2p` (same results)."""
-    t = wp.tid()
-    env = t / m_per_env
-    if substep + step_base[0] >= env_steps[env] or t_held[t] != 0:
-        return
-    xt = tx[t]
-    if wp.isfinite(xt):
-        tracked_point_update(t, xt, env, grid_v, env_dt, env_origin, nodes_per_env, dims, dx, inv_dx, has_ground,
-                             ground_z, tx, tv)
