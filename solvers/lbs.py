@@ -958,7 +958,7 @@ class LBSSimulation(Simulation):
                     "device": self.device, "wall_s": wall, "skinning_bounds": self.bounds.tolist(),
                     "skinning_params": self.skinning_params.tolist(), "skinning_fitted": self.skinning_fitted,
                     "handle_form": "x = A[X;1] + sum_h w_h(X) D_h[X;1]; A = handle_transforms[:, -1]",
-                    "phase_seconds": phases, "evaluation_seconds": evaluation,
+                    "phase_seconds": dict(phases), "evaluation_seconds": dict(evaluation),
                     "evaluations": dict(elastic.counts), "line_search_candidates": candidates,
                     "warnings": list(self.warnings)}
             traj = Trajectory(self.frame_times, out_track[e], solver=self.solver, handle_transforms=out_handles[e],
