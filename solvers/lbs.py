@@ -280,6 +280,14 @@ class _Factor:
             L[torch.from_numpy(bad)] = torch.linalg.cholesky_ex(torch.from_numpy(shifted))[0]
         self.L = L
 
+    def subset(self, rows: np.ndarray) -> "_Factor":
+        """The factors of the systems ``rows`` (indices)."""
+        import torch
+
+        part = object.__new__(_Factor)
+        part.L = self.L[torch.from_numpy(np.asarray(rows, np.int64))]
+        return part
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """A⁻¹ b for right-hand sides b (R, ...) with N numbers each."""
         import torch
@@ -867,8 +875,10 @@ class LBSSimulation(Simulation):
                 Z = Z_hat.copy()
                 active = np.ones(E_env, bool)
                 clock.add("host_terms", time.perf_counter() - t1)
+                previous = None          # (env indices, system, factor, next step) of the last iteration
                 for it in range(st.newton_iterations):
                     if it > 0 and not st.reuse_hessian:
+                        previous = None
                         t0 = time.perf_counter()
                         psi, g_el, K_el = elastic.evaluate(Z, envs, hessian=True)
                         t1 = time.perf_counter()
@@ -880,8 +890,15 @@ class LBSSimulation(Simulation):
                     idx = np.flatnonzero(active)
                     Hm = K_el[idx]
                     terms.add_hessian(Hm, Z[idx], idx)
-                    factor = _Factor(Hm)
-                    step = -factor.solve(grad[idx])                                    # (n, 3, nA)
+                    if previous is not None and np.array_equal(previous[1][np.searchsorted(previous[0], idx)], Hm):
+                        # same system as the last iteration's (no contact / friction change): its factor
+                        # and its convergence check's solve are this iteration's step
+                        pos = np.searchsorted(previous[0], idx)
+                        factor = previous[2].subset(pos)
+                        step = -previous[3][pos]
+                    else:
+                        factor = _Factor(Hm)
+                        step = -factor.solve(grad[idx])                                # (n, 3, nA)
                     slope = np.einsum("eam,eam->e", grad[idx], step)
                     t1 = time.perf_counter()
                     clock.add("newton_solve", t1 - t0)
@@ -921,6 +938,7 @@ class LBSSimulation(Simulation):
                     clock.add("line_search_bookkeeping", t2 - t1 - inner)
                     # converged when the next Newton step (predicted with the current factor) is tiny
                     nxt = factor.solve(grad_new)
+                    previous = (idx, Hm, factor, nxt)
                     rms = np.sqrt(np.maximum(np.einsum("eam,mn,ean->e", nxt, M, nxt), 0.0) / self.total_mass)
                     newton_total += 1
                     active[idx] = accepted & (rms > tolerance)
