@@ -498,8 +498,7 @@ def field_pictures(sweep_path, alphas, out_dir, title: str = "") -> list:
 
     sweep = load_sweep(sweep_path)
     scale = FieldColourScale.of_sweep(sweep)
-    cmap = ListedColormap(scale.lut_srgb)
-    cmap.set_bad("white")
+    cmap = ListedColormap(scale.lut_srgb).with_extremes(bad="white")
     occ = sweep.occupancy
     idx = np.argwhere(occ)
     centre = np.round(idx.mean(0)).astype(int)

@@ -42,6 +42,9 @@ _FINGERPRINTS: dict = {}
 """Object name → its last fingerprint (reused when only settings changed)."""
 _PENDING: set = set()
 _REFRESHING = [False]
+_QUIET: set = set()
+"""Objects whose next depsgraph update comes from one of UniPixie's own settings (a property with an update
+callback, such as α, tags the object for re-evaluation), not from an edit: their state is already current."""
 
 
 # --------------------------------------------------------------------------- settings and state
@@ -115,6 +118,7 @@ def on_alpha_changed(obj, context) -> None:
     """The α slider moved: recolour the field from the cached sweep (no inference) and update the states."""
     if not _valid(obj):
         return
+    _QUIET.add(obj.name)
     s = obj.unipixie
     if s.show_field:
         try:
@@ -127,8 +131,10 @@ def on_alpha_changed(obj, context) -> None:
 
 def on_settings_changed(obj, context) -> None:
     """A bake setting changed (solver, frames, effects, material source, device): update the bake's state."""
-    if _valid(obj) and (pio.has_record(obj) or obj.unipixie.state_bake != core.NOT_DONE):
-        refresh_object(obj, context, geometry=False)
+    if _valid(obj):
+        _QUIET.add(obj.name)
+        if pio.has_record(obj) or obj.unipixie.state_bake != core.NOT_DONE:
+            refresh_object(obj, context, geometry=False)
 
 
 def _mark_running(obj, step: str) -> None:
@@ -395,6 +401,9 @@ def _on_depsgraph(scene, depsgraph):
         idb = update.id
         if isinstance(idb, bpy.types.Object):
             orig = idb.original
+            if orig.name in _QUIET:          # a UniPixie setting changed, not the object
+                _QUIET.discard(orig.name)
+                continue
             if (update.is_updated_geometry or update.is_updated_transform) and core.RECORD_KEY in orig.keys():
                 names.add(orig.name)
         elif isinstance(idb, (bpy.types.Material, bpy.types.Image, bpy.types.NodeTree)):

@@ -1,0 +1,96 @@
+"""`unipixie demo --quick` end to end (what CI runs of README's main job) and the demo command's errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    from unipixie.core.demo import untrained_checkpoint
+
+    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
+
+
+def _picture(path):
+    from PIL import Image
+
+    img = np.asarray(Image.open(path).convert("RGB"), dtype=np.float64)
+    assert img.std() > 10.0, f"{path} is (nearly) one colour"
+    return img.shape
+
+
+@pytest.mark.slow
+def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_checkpoint, capsys):
+    pytest.importorskip("bpy")
+    from unipixie.core import demo
+    from unipixie.core.cli import main
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out), "--checkpoint", str(tiny_checkpoint)]) == 0
+    printed = capsys.readouterr().out
+    assert "Blender file:" in printed and str(out / demo.BLEND_NAME) in printed
+
+    summary = json.loads((out / demo.SUMMARY_NAME).read_text())
+    assert summary["plan"] == "quick" and summary["failed"] == []
+    assert (out / demo.BLEND_NAME).stat().st_size > 100_000
+    assert len(summary["objects"]) == 2 and all(p.endswith(".glb") for p in summary["objects"])
+    h, w, _ = _picture(summary["contact_sheet"])
+    assert (h, w) == (2 * (demo.QUICK.sheet_size[1] + 22), 2 * demo.QUICK.sheet_size[0])
+    assert len(summary["field_pictures"]) == 3
+    for p in summary["field_pictures"]:
+        _picture(p)
+    bakes = {b["object"]: b for b in summary["bakes"]}
+    assert sorted(b["solver"] for b in bakes.values()) == ["lbs", "mpm", "mpm", "mpm", "spring_mass"]
+    for b in bakes.values():
+        assert b["max_displacement"] > demo.MOVE_THRESHOLD, f"{b['object']} did not move"
+    mpm = sorted((b for b in bakes.values() if b["solver"] == "mpm"), key=lambda b: b["alpha"])
+    assert [b["alpha"] for b in mpm] == [0.0, 0.5, 1.0]
+    assert "at α 0 " in mpm[0]["material"] and "at α 1 " in mpm[-1]["material"]
+    assert summary["alpha_difference"] > 1e-5          # the α = 0 and α = 1 bakes differ
+
+    # the saved file: baked motion, and every object's pipeline found again
+    import bpy
+
+    from unipixie.core.blender_io import bake as bio
+    from unipixie.core.blender_io import pipeline as pio
+
+    bpy.ops.wm.open_mainfile(filepath=summary["blend"])
+    for name, b in bakes.items():
+        obj = bpy.data.objects[name]
+        assert bio.bake_record(obj)["solver"] == b["solver"]
+        rec = pio.read_record(obj)
+        assert rec.file("features", "grid") is not None and rec.file("predict", "sweep") is not None
+        moved = np.linalg.norm(bio.evaluated_positions(obj, demo.QUICK.frames) - bio.evaluated_positions(obj, 1), axis=1)
+        assert moved.max() > demo.MOVE_THRESHOLD
+    a0, a1 = (bpy.data.objects[b["object"]] for b in (mpm[0], mpm[-1]))
+    d0 = bio.evaluated_positions(a0, demo.QUICK.frames) - bio.evaluated_positions(a0, 1)
+    d1 = bio.evaluated_positions(a1, demo.QUICK.frames) - bio.evaluated_positions(a1, 1)
+    assert np.abs(d0 - d1).max() > 1e-5
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+def test_demo_command_errors_are_one_line(tmp_path, monkeypatch, capsys, tiny_checkpoint):
+    from unipixie.core import pipeline
+    from unipixie.core.cli import main
+
+    monkeypatch.setattr(pipeline, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    assert main(["demo", "--quick", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "unipixie demo: error: the default model is not installed" in err and "--checkpoint" in err
+    assert main(["demo", "--diagnose", "--quick"]) == 2
+    assert "--quick and --checkpoint apply to the pipeline demo" in capsys.readouterr().err
+
+    # a checkpoint trained on other features than the demo extracts is refused before any work
+    from unipixie.core.model import UniPixieModel, preset, save_model
+
+    other = save_model(UniPixieModel(preset("tiny", feature_model="ViT-B-16", feature_dim=16, patch_size=4,
+                                            spring_anchors=8)), tmp_path / "clip_model")
+    assert main(["demo", "--quick", "--out", str(tmp_path / "d"), "--checkpoint", str(other)]) == 2
+    assert "trained on 'ViT-B-16'" in capsys.readouterr().err
+    assert not (tmp_path / "d" / "objects").exists()

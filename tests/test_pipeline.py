@@ -1,0 +1,307 @@
+"""The object pipeline without Blender: records, staleness, checkpoint and preference checks, the α sweep and
+the model's material at α, the field display's geometry and colours, the demo's MPM budget."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from unipixie.core import pipeline as core
+from unipixie.core.errors import UserError
+
+
+# --------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    """An untrained tiny model for the offline features (64³ grid, patch 4, 64 spring anchors)."""
+    from unipixie.core.demo import untrained_checkpoint
+
+    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
+
+
+@pytest.fixture(scope="module")
+def blob_grid(tmp_path_factory):
+    """A feature grid of an ellipsoid (~2.4k voxels) with deterministic offline-width features, saved to disk."""
+    from unipixie.core import clip_features as cf
+    from unipixie.core.normalise import unit_cube_grid
+    from unipixie.core.types import FeatureGrid
+
+    geo = unit_cube_grid()
+    R = geo.resolution
+    c = (np.stack(np.meshgrid(*[np.arange(R)] * 3, indexing="ij"), -1) + 0.5) / R - 0.5
+    occ = (c[..., 0] / 0.2) ** 2 + (c[..., 1] / 0.12) ** 2 + (c[..., 2] / 0.1) ** 2 < 1
+    feats = np.random.default_rng(0).normal(size=(int(occ.sum()), cf.OFFLINE_VISION_CFG["width"])).astype(np.float16)
+    grid = FeatureGrid(geo, occ, feats, cf.OFFLINE_FEATURE_MODEL, meta={"normalisation": {"centre": [0, 0, 0], "scale": 1.0}})
+    path = tmp_path_factory.mktemp("grid") / "grid.npz"
+    grid.save(path)
+    return path
+
+
+def _settings(ckpt, **kw):
+    return core.PipelineSettings(checkpoint=str(ckpt), sweep_count=3, steps=4, **kw)
+
+
+def _run(job):
+    from unipixie.core.features import run_job
+
+    return run_job(job)
+
+
+# --------------------------------------------------------------------------- record and states
+def test_record_round_trip_and_foreign_values_mean_nothing_done():
+    rec = core.PipelineRecord()
+    rec.set("render", {"inputs": {"fingerprint": "a"}, "views": "/x.npz"})
+    back = core.PipelineRecord.from_json(rec.to_json())
+    assert back.steps == rec.steps
+    for bad in ("", None, "not json", json.dumps({"format": "other/1", "steps": {}}), json.dumps([1, 2])):
+        assert core.PipelineRecord.from_json(bad).steps == {}
+    with pytest.raises(ValueError):
+        rec.set("paint", {})
+
+
+def _done_record(tmp_path, settings, fp="fp1"):
+    files = {k: tmp_path / f"{k}.npz" for k in ("views", "grid", "sweep")}
+    for f in files.values():
+        f.write_bytes(b"x")
+    rec = core.PipelineRecord()
+    rec.set("render", {"inputs": settings.render_inputs(fp), "views": str(files["views"])})
+    rec.set("features", {"inputs": settings.feature_inputs(fp), "grid": str(files["grid"])})
+    rec.set("predict", {"inputs": settings.predict_inputs(files["grid"]), "sweep": str(files["sweep"])})
+    return rec, files
+
+
+def _bake_rec(**kw):
+    d = {"format": "unipixie.bake/1", "solver": "mpm", "frames": [1, 48], "fps": 24.0, "alpha": 0.5,
+         "material_source": {"source": "model"}, "effects": []}
+    d.update(kw)
+    return d
+
+
+def test_states_done_stale_with_reasons_and_downstream(tmp_path, tiny_checkpoint):
+    s = _settings(tiny_checkpoint)
+    rec, files = _done_record(tmp_path, s)
+    bake = _bake_rec()
+    cur = core.CurrentInputs("fp1", s, bake_options=dict(bake), bake_record=bake)
+    rec.set("bake", {"fingerprint": "fp1", "sweep": str(files["sweep"])})
+    st = core.step_states(rec, cur)
+    assert {k: v.state for k, v in st.items()} == {k: core.DONE for k in core.STEPS}
+
+    # the mesh changed: render and features stale, prediction and the model-driven bake follow
+    st = core.step_states(rec, core.CurrentInputs("fp2", s, bake_options=dict(bake), bake_record=bake))
+    assert st["render"].state == st["features"].state == core.STALE
+    assert "mesh" in st["features"].reason
+    assert st["predict"].state == core.STALE and "features are stale" in st["predict"].reason
+    assert st["bake"].state == core.STALE
+
+    # α moved: only the bake is stale, and says why
+    st = core.step_states(rec, core.CurrentInputs("fp1", s, bake_options=_bake_rec(alpha=0.7), bake_record=bake))
+    assert [st[k].state for k in core.STEPS] == [core.DONE, core.DONE, core.DONE, core.STALE]
+    assert st["bake"].reason == "α changed"
+    # ... which does not matter for a homogeneous material
+    homog = _bake_rec(material_source={"source": "homogeneous", "E": 1e5})
+    st = core.step_states(rec, core.CurrentInputs("fp1", s, bake_options=dict(homog, alpha=0.9), bake_record=homog))
+    assert st["bake"].state == core.DONE
+
+    # other view count: render stale; other sweep size: predict stale; a running step shows as running
+    st = core.step_states(rec, core.CurrentInputs("fp1", _settings(tiny_checkpoint, view_count=12), bake_record=bake))
+    assert st["render"].state == core.STALE and "views" in st["render"].reason
+    st = core.step_states(rec, core.CurrentInputs("fp1", core.PipelineSettings(checkpoint=str(tiny_checkpoint),
+                                                                               sweep_count=5, steps=4)))
+    assert st["predict"].state == core.STALE and "sweep" in st["predict"].reason
+    assert st["bake"].state == core.NOT_DONE
+    st = core.step_states(rec, core.CurrentInputs("fp1", s, running="predict"))
+    assert st["predict"].state == core.RUNNING
+
+    # a cached file removed from the cache: the step is not done (and says so)
+    files["sweep"].unlink()
+    st = core.step_states(rec, core.CurrentInputs("fp1", s))
+    assert st["predict"].state == core.NOT_DONE and "no longer in the cache" in st["predict"].reason
+    assert core.first_pending(st) == "predict"
+
+
+# --------------------------------------------------------------------------- checkpoint and preference checks
+def test_checkpoint_resolution_and_clear_messages(tmp_path, tiny_checkpoint, monkeypatch):
+    assert core.resolve_checkpoint(tiny_checkpoint) == tiny_checkpoint
+    assert core.resolve_checkpoint(tiny_checkpoint / "model.safetensors") == tiny_checkpoint
+    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    with pytest.raises(UserError, match="default model is not installed.*Model checkpoint"):
+        core.resolve_checkpoint(None)
+    with pytest.raises(UserError, match="does not exist"):
+        core.resolve_checkpoint(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="not a UniPixie checkpoint"):
+        core.resolve_checkpoint(tmp_path / "empty")
+    assert core.checkpoint_feature_model(tiny_checkpoint) == ("offline-random-vit-w32", 32)
+
+
+def test_check_settings_names_each_problem(tmp_path, tiny_checkpoint, monkeypatch):
+    assert core.check_settings(checkpoint=str(tiny_checkpoint), cache_dir=str(tmp_path)) == []
+    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    monkeypatch.setattr(core, "cuda_available", lambda: False)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    problems = core.check_settings(checkpoint="", clip_weights=str(tmp_path / "no_clip"), cache_dir=str(a_file),
+                                   device="cuda", view_count=4)
+    assert len(problems) == 5
+    text = "\n".join(problems)
+    assert "Model checkpoint: the default model is not installed" in text
+    assert "CLIP weights:" in text and "no_clip" in text
+    assert "Cache directory:" in text and "not a directory" in text
+    assert "Device: CUDA is selected but no CUDA GPU" in text
+    assert "Default views: 4 views" in text
+    # CLIP weights set while the model was trained on the offline features: say which to clear
+    weights = tmp_path / "clip.safetensors"
+    weights.write_bytes(b"0")
+    (msg,) = core.check_settings(checkpoint=str(tiny_checkpoint), clip_weights=str(weights))
+    assert "trained on 'offline-random-vit-w32'" in msg and "clear 'CLIP weights'" in msg
+
+
+# --------------------------------------------------------------------------- sweep and the material at α
+def test_predict_sweep_refine_and_model_material(tmp_path, tiny_checkpoint, blob_grid):
+    from unipixie.core.bake import BakeObject
+    from unipixie.core.model.inference import get_predictor
+    from unipixie.core.types import FeatureGrid, MaterialField
+
+    s = _settings(tiny_checkpoint)
+    sweep, path, inputs = _run(core.predict_job(blob_grid, s))
+    assert np.allclose(sweep.alphas, [0.0, 0.5, 1.0]) and path.is_file()
+    assert inputs == s.predict_inputs(blob_grid)
+    assert core.sweep_heads(sweep) == ("mpm", "lbs", "spring_mass")
+    t = time.perf_counter()
+    again, path2, _ = _run(core.predict_job(blob_grid, s))       # from the cache
+    assert path2 == path and time.perf_counter() - t < 2.0 and np.array_equal(again.log10_E, sweep.log10_E)
+
+    plan = core.ModelPlan(grid=str(blob_grid), sweep=str(path), checkpoint=str(tiny_checkpoint), steps=4)
+    grid = FeatureGrid.load(blob_grid)
+    predictor = get_predictor(tiny_checkpoint, device="cpu")
+    # α on the sweep: its own values (exact: the same as a one-α prediction with the same seed)
+    pred, how, _ = core.exact_prediction(plan, 0.5, ("mpm", "spring_mass"))
+    direct = predictor.predict(grid, [0.5], heads=("mpm", "spring_mass"), seed=0, steps=4)
+    assert how == "from the α sweep"
+    np.testing.assert_allclose(pred.mpm[0].E, direct.mpm[0].E, rtol=1e-5)
+    np.testing.assert_allclose(pred.spring_mass[0].stiffness, direct.spring_mass[0].stiffness, rtol=1e-5)
+    # between sweep values: exact inference, then the cached file
+    pred, how, refined = core.exact_prediction(plan, 0.37, ("mpm",))
+    assert how == "exact inference" and refined.is_file()
+    direct = predictor.predict(grid, [0.37], heads=("mpm", "lbs", "spring_mass"), seed=0, steps=4)
+    np.testing.assert_allclose(pred.mpm[0].E, direct.mpm[0].E, rtol=1e-5)
+    assert core.exact_prediction(plan, 0.37, ("mpm",))[1] == "refined"
+    with pytest.raises(UserError, match="α must lie in"):
+        core.exact_prediction(plan, 1.5, ("mpm",))
+
+    # the bake's model material: world-space field on the object's bounding box, solver settings per head
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * [0.4, 0.24, 0.2]
+    tris = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                     [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    obj = BakeObject("Blob", v, tris)
+    with pytest.raises(UserError, match="run Predict"):
+        core.model_material(obj, 0.5, "mpm")
+    core.set_plan("Blob", plan)
+    try:
+        res = core.model_material(obj, 0.5, "mpm")
+        assert isinstance(res.spec, MaterialField) and res.spec.meta["space"] == "world"
+        assert res.spec.geometry.voxel_size == pytest.approx(0.4 / 64)
+        assert "from the α sweep" in res.description
+        assert core.model_material(obj, 0.5, "lbs").settings["skinning_params"].shape == (650,)
+        assert core.model_material(obj, 1.0, "spring_mass").settings["stiffness"].shape == (64,)
+    finally:
+        core.set_plan("Blob", None)
+
+    # the panel's refine keeps a file at its α even on a sweep value
+    pred, how, p = _run(core.refine_job(plan, 0.5))
+    assert how == "exact inference" and p.is_file() and pred.mpm is not None
+
+
+def test_closing_a_background_job_cancels_its_worker():
+    seen = []
+
+    def work(progress):
+        for i in range(400):
+            time.sleep(0.005)
+            progress.step(1, f"step {i}")
+        seen.append("finished")
+
+    job = core._background(work, "test")
+    next(job)
+    next(job)
+    job.close()     # Esc: the worker is cancelled at its next step and joined
+    assert seen == []
+    time.sleep(0.05)
+    assert seen == []
+
+
+def test_predict_job_refuses_a_missing_model_before_working(tmp_path, blob_grid, monkeypatch):
+    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    with pytest.raises(UserError, match="default model is not installed"):
+        next(core.predict_job(blob_grid, core.PipelineSettings()))
+
+
+# --------------------------------------------------------------------------- the field display
+def test_voxel_surface_of_boxes_and_orientation():
+    from unipixie.core.types import GridGeometry
+
+    geo = GridGeometry(8, np.zeros(3), 1.0)
+    occ = np.zeros((8, 8, 8), bool)
+    occ[2, 3, 4] = True
+    v, q, fv = core.voxel_surface(geo, occ)
+    assert v.shape == (8, 3) and q.shape == (6, 4) and np.all(fv == 0)
+    occ[1:4, 1:3, 1:5] = True                  # a 3 × 2 × 4 box (plus the voxel above it)
+    occ[2, 3, 4] = False
+    v, q, fv = core.voxel_surface(geo, occ)
+    assert len(q) == 2 * (3 * 2 + 3 * 4 + 2 * 4)
+    assert len(v) == 4 * 3 * 5 - 2 * 1 * 3     # the box's lattice corners minus the interior ones
+    centres = geo.centres(np.argwhere(occ))[fv]
+    quad = v[q]
+    normal = np.cross(quad[:, 1] - quad[:, 0], quad[:, 2] - quad[:, 0])
+    assert np.all(np.einsum("ij,ij->i", normal, quad.mean(1) - centres) > 0)    # counter-clockwise from outside
+    with pytest.raises(UserError):
+        core.voxel_surface(geo, np.zeros((8, 8, 8), bool))
+
+
+def test_colour_scale_is_monotone_and_labelled():
+    scale = core.FieldColourScale(4.0, 7.0)
+    lum = scale.lut_linear @ np.array([0.2126, 0.7152, 0.0722])
+    assert np.all(np.diff(lum) > 0)                   # higher E, brighter colour
+    ticks = scale.ticks(5)
+    assert [t[0] for t in ticks] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert ticks[0][1] == pytest.approx(1e4) and ticks[-1][1] == pytest.approx(1e7)
+    assert ticks[0][2] == "10 kPa" and ticks[-1][2] == "10 MPa"
+    assert np.all(np.diff([t[1] for t in ticks]) > 0)
+    np.testing.assert_allclose(scale.positions([3.0, 5.5, 9.0]), [0.0, 0.5, 1.0])
+    c = scale.colours_linear([4.0, 7.0])
+    assert c.shape == (2, 4) and c.dtype == np.float32 and np.all(c[:, 3] == 1)
+    flat = core.FieldColourScale(5.0, 5.0)            # a uniform field still gets a usable scale
+    assert flat.log10_max > flat.log10_min
+
+
+# --------------------------------------------------------------------------- the demo's sizing
+def test_mpm_grid_fits_the_budget():
+    from unipixie.core.demo import mpm_cells_for_budget
+    from unipixie.solvers.mpm import MPMSettings
+
+    s = MPMSettings()
+    n, cost = mpm_cells_for_budget(100.0, 1.0, 0.2, 25, 24.0, 5e7, (8, 32))
+    assert 8 <= n <= 32 and cost <= 5e7
+    dx = 1.0 / (n + 1)       # one cell finer would not fit
+    finer = 24 * np.ceil(100.0 / 24.0 / (s.cfl * dx)) * 0.2 / dx ** 3 * s.particles_per_cell_axis ** 3
+    assert n == 32 or finer > 5e7
+    assert mpm_cells_for_budget(1e5, 1.0, 0.2, 25, 24.0, 1e3, (8, 32))[0] == 8      # never below the minimum
+
+
+def test_wave_speed_ignores_held_and_empty_material():
+    from unipixie.core.demo import max_wave_speed
+    from unipixie.core.normalise import unit_cube_grid
+    from unipixie.core.types import MaterialField
+    from unipixie.solvers import materials
+
+    occ = np.zeros((64,) * 3, bool)
+    occ[:2, 0, 0] = True
+    E, nu, rho = 2e6, 0.3, 800.0
+    jelly, held = materials.get("jelly").id, materials.get("stationary").id
+    f = MaterialField(unit_cube_grid(), occ, [E, 1e11], [nu, nu], [rho, rho], [jelly, held])
+    expect = np.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
+    assert max_wave_speed(f) == pytest.approx(expect, rel=1e-6)
