@@ -6,8 +6,12 @@ under gravity.  Both solvers take the same particles, cell size, time step and s
 
 * ours: :func:`unipixie.solvers.mpm.prepare` once, then ``sim.run([])`` of one frame of
   ``--substeps`` substeps (the time step is capped with ``max_dt``); the timed run includes
-  everything a diagnosis re-run pays (initial-state upload, grid placement, particle sort,
-  stepping, divergence checks, reading the tracked points back).
+  everything a diagnosis re-run pays (initial-state reset, grid placement, particle sort,
+  stepping, divergence checks, reading the tracked points back).  ``--variants`` times several
+  presets of the solver's GPU-tuning settings (:data:`VARIANTS`) on the same prepared simulation,
+  each followed by one profiled run whose per-kernel times (CUDA events on a GPU) are recorded as
+  ``breakdown`` in µs per substep (p2g, grid_update, g2p, g2p_tracked, sort, frame_stats), with the
+  profiled run's wall time and what the kernels leave of it (host work, launches, read-backs).
 * reference: a straightforward PhysGaussian-style APIC solver written below (stepping only
   timed; initial state uploaded once): per substep it launches six kernels — clear the grid,
   compute stress (an SVD of every particle's F and a per-particle stress write), P2G (APIC
@@ -18,7 +22,8 @@ under gravity.  Both solvers take the same particles, cell size, time step and s
 
 The metric is N × substeps / median wall time over ``--runs`` runs (after one warm-up run).
 After timing, the two solvers' particle positions are compared (they solve the same
-discretised equations; differences come from transfer details and float order).
+discretised equations; differences come from transfer details and float order), and every
+variant's with the first variant's.  A variant that fails is reported and skipped.
 """
 
 # No ``from __future__ import annotations``: the reference kernels are defined inside a function (so
@@ -321,6 +326,7 @@ def run(args) -> list[dict]:
     dt = 0.3 * dx / (c + DROP_SPEED + 9.81 * 0.01)  # below every CFL bound of the run: both solvers use it
     gravity = (0.0, 0.0, -9.81)
     results = []
+    failures = []
     for requested in sizes:
         points = _cube(requested)
         n = len(points)
@@ -350,33 +356,50 @@ def run(args) -> list[dict]:
         for variant in variants:
             for name, value in {**shipped, **VARIANTS[variant]}.items():
                 setattr(sim.settings, name, value)
-            last = {"traj": sim.run([])}  # warm-up (uploads the initial state, captures graphs)
-            ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
-            ours_rate = n * substeps / statistics.median(ours)
-            label = _label(requested) + (", unsorted" if args.no_sort else "")
-            entry = {"case": f"{label} particles, jelly, drop" + ("" if variant == "default" else f", {variant}"),
-                     "device": described, "metric": "particle_substeps_per_s", "value": ours_rate, "runs": args.runs,
-                     "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ours),
-                     "grid_dims": last["traj"].meta["grid_dims"],
-                     "settings": {f: getattr(sim.settings, f) for f in TUNING_FIELDS}}
-            # same physics: final particle positions after the same substeps (order: the input points)
-            x = sim.run([], particle_states=True).particle_positions[-1]
+            try:
+                entry = _measure_variant(sim, variant, requested, n, substeps, args, wp, device, described,
+                                         ref_rate, ref_x, first_x)
+            except Exception as exc:  # report and go on with the other variants (a CUDA fault will stop them too)
+                failures.append(f"{_label(requested)} {variant}: {type(exc).__name__}: {exc}")
+                print(f"  {n:,} particles, {variant}: FAILED: {failures[-1]}", flush=True)
+                continue
             if first_x is None:
-                first_x = x
+                first_x = entry.pop("_x")
             else:
-                entry["max_position_difference_vs_first_variant_m"] = float(np.abs(x - first_x).max())
-            if ref_rate is not None:
-                entry["vs"] = {"what": "reference PhysGaussian-style APIC kernels, same run",
-                               "ratio": ours_rate / ref_rate}
-                entry["max_position_difference_m"] = float(np.abs(x - ref_x).max())
-            if not args.no_breakdown:
-                entry["breakdown"] = _breakdown(sim)
+                entry.pop("_x")
             results.append(entry)
             parts = ""
             if "breakdown" in entry:
                 parts = "; µs/substep " + ", ".join(f"{k.replace('_us_per_substep', '')} {v:.1f}"
                                                      for k, v in entry["breakdown"].items() if k.endswith("substep"))
-            print(f"  {n:,} particles, {variant}: {ours_rate:.3g} particle-substeps/s"
+            print(f"  {n:,} particles, {variant}: {entry['value']:.3g} particle-substeps/s"
                   + (f" (x{entry['vs']['ratio']:.2f} the reference; positions agree to "
                      f"{entry['max_position_difference_m']:.1e} m)" if "vs" in entry else "") + parts, flush=True)
+    if failures:
+        print("FAILED variants:\n  " + "\n  ".join(failures), flush=True)
     return results
+
+
+def _measure_variant(sim, variant, requested, n, substeps, args, wp, device, described, ref_rate, ref_x, first_x):
+    """Time one variant (settings already applied): warm-up, ``--runs`` timed runs, the final positions against
+    the reference and the first variant, and the per-kernel breakdown."""
+    last = {"traj": sim.run([])}  # warm-up (uploads the initial state, captures graphs)
+    ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
+    ours_rate = n * substeps / statistics.median(ours)
+    label = _label(requested) + (", unsorted" if args.no_sort else "")
+    entry = {"case": f"{label} particles, jelly, drop" + ("" if variant == "default" else f", {variant}"),
+             "device": described, "metric": "particle_substeps_per_s", "value": ours_rate, "runs": args.runs,
+             "particles": n, "substeps_per_run": substeps, "median_run_s": statistics.median(ours),
+             "grid_dims": last["traj"].meta["grid_dims"],
+             "settings": {f: getattr(sim.settings, f) for f in TUNING_FIELDS}}
+    # same physics: final particle positions after the same substeps (order: the input points)
+    x = sim.run([], particle_states=True).particle_positions[-1]
+    entry["_x"] = x
+    if first_x is not None:
+        entry["max_position_difference_vs_first_variant_m"] = float(np.abs(x - first_x).max())
+    if ref_rate is not None:
+        entry["vs"] = {"what": "reference PhysGaussian-style APIC kernels, same run", "ratio": ours_rate / ref_rate}
+        entry["max_position_difference_m"] = float(np.abs(x - ref_x).max())
+    if not args.no_breakdown:
+        entry["breakdown"] = _breakdown(sim)
+    return entry
