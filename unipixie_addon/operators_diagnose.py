@@ -17,7 +17,6 @@ UI only: each operator calls :mod:`unipixie.core.measurement`, :mod:`unipixie.co
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
 

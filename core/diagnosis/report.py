@@ -24,7 +24,6 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -56,7 +55,6 @@ def validate_report(doc: dict) -> None:
         raise UserError("diagnosis report: baseline worst_points must be integers and worst_times numbers")
     if not isinstance(doc["candidates"], list):
         raise UserError("diagnosis report: key 'candidates' must be a list")
-    prev = -math.inf
     for c in doc["candidates"]:
         for k, typ in (("effect", str), ("params", dict), ("rmse", (int, float)), ("explained", (int, float)),
                        ("significant", bool)):
@@ -66,7 +64,6 @@ def validate_report(doc: dict) -> None:
     if sig_first != sorted(sig_first, reverse=True):
         raise UserError("diagnosis report: candidates are not ranked best first (a significant one follows a "
                         "non-significant one)")
-    del prev
     ident = doc["identified"]
     if ident is not None:
         sig_names = [c["effect"] for c in doc["candidates"] if c["significant"]]
