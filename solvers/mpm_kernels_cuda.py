@@ -24,7 +24,8 @@ transfers and the tracked-point fit); what differs is how the work is laid out o
 Every native snippet is guarded by ``__CUDA_ARCH__``; on the CPU the kernels run with plain atomics
 and loads and give bitwise the results of :mod:`.mpm_kernels` (which the tests check).  The kernels
 that scatter with ``"warp"`` must be launched with the thread count rounded up to a multiple of 32
-(:func:`padded_launch_dim`): whole warps, with the extra lanes inactive.
+(:func:`padded_launch_dim`): whole warps, with the extra lanes inactive, one item per thread (no
+``max_blocks``: every lane of a warp must reach the warp-wide grouping exactly once).
 """
 
 from __future__ import annotations
