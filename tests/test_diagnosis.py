@@ -79,8 +79,11 @@ def test_hidden_effect_is_found(spec, tmp_path):
     assert d.history[-1]["effects"] == [truth.name]
     assert d.history[-1]["rmse"] <= 2.0 * NOISE_LEVEL, d.summary()
     assert d.history[-1]["rmse"] < 0.5 * d.history[0]["rmse"]
-    if "true_E_scale" in kw:  # the base material was stated 20 % soft: the E/ρ refit says so
+    if "true_E_scale" in kw and kw["scenario"] != "slide":
+        # the base material was stated 20 % soft: the E/ρ refit says so (a cube sliding on the ground hardly
+        # deforms, so there E is left near the stated value by the prior)
         assert d.E_scale == pytest.approx(kw["true_E_scale"], rel=0.1)
+        assert d.base_material["looks_wrong"]
     if truth.name == "stiffness_region":  # the region found is the stiffer half (x above the middle)
         found = np.asarray(top.region["points"])
         assert np.mean(m.rest[found, 0] >= 0.2 - 1e-6) >= 0.9 and len(found) >= 0.4 * m.point_count
