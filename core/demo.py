@@ -259,8 +259,6 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     stiff for the demo's substep limit) is reported and recorded in the summary (``failed``); the other
     bakes and the pictures are still made.
     """
-    import bpy  # noqa: F401  (fails early and clearly without Blender)
-
     from ..training import procedural
     from .blender_io import demo_scene as ds
     from .blender_io import pipeline as pio
@@ -318,7 +316,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         ds.place_on_ground(duck, x, -0.3, plan.drop_height)
         _setup(duck, solver="lbs", alpha=plan.lbs_alpha, ground=ground, device=device)
         ds.add_label(f"{SOLVER_LABELS['lbs']} α={plan.lbs_alpha:g}", (x, -0.42, 0.01))
-        ds.add_camera(target=(0.5 * gap, 0.0, 0.36), distance=1.6 + 2.4 * gap)
+        ds.add_camera(target=(0.45 * gap, 0.0, 0.36), distance=1.9 + 2.4 * gap)
         blend = out / BLEND_NAME
         bpy_save(blend)          # saved first: bakes write their point caches next to it
         p.step(0.5)
@@ -406,12 +404,9 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
 
 
 def bpy_save(path: Path) -> None:
-    import bpy
+    from .blender_io.demo_scene import save
 
-    from .blender_io.scene_import import quiet_blender_output
-
-    with quiet_blender_output():
-        bpy.ops.wm.save_as_mainfile(filepath=str(path), relative_remap=True)
+    save(path)
 
 
 def _setup(obj, solver: str, alpha: float, ground, device: str, clamp_group: str = "",

@@ -207,6 +207,12 @@ def render_frames(frames: Sequence[int], folder, size=(640, 360), hide=()) -> li
     return out
 
 
+def save(path) -> None:
+    """Save the session as ``path`` (relative paths remapped), quietly."""
+    with quiet_blender_output():
+        bpy.ops.wm.save_as_mainfile(filepath=str(path), relative_remap=True)
+
+
 def mesh_volume(obj) -> float:
     """Volume (m³) enclosed by the object's mesh at rest (world space, scene units × unit scale)."""
     from .bake import read_object

@@ -56,12 +56,12 @@ def run(args) -> int:
             run_demo(args.out or DEFAULT_DIAGNOSIS_OUT, solver=args.solver, device=resolve_device(args.device),
                      progress=progress)
         return 0
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
+    import importlib.util
+
+    if importlib.util.find_spec("bpy") is None:
         raise UserError("the demo renders and bakes with Blender: install the bpy module (./setup.sh does) or run "
                         "it inside Blender: blender -b --python-expr \"import bl_ext.user_default.unipixie.cli as c; "
-                        "c.main()\" -- demo") from None
+                        "c.main()\" -- demo")
     from ..demo import run_demo
 
     import sys
