@@ -68,7 +68,6 @@ CHANGE_REASONS = {
     "count": "the number of α values of the sweep changed",
     "seed": "the seed changed",
     "steps": "the number of inference steps changed",
-    "heads": "the predicted heads changed",
     "precision": "the device changed (the model runs in bf16 on CUDA)",
     "solver": "the solver changed",
     "frames": "the frame range changed",
@@ -335,10 +334,12 @@ class PipelineSettings:
         return {**self.render_inputs(fingerprint), "extractor": extractor_identity(self.feature_options())}
 
     def predict_inputs(self, grid_path) -> dict:
+        """What a sweep depends on.  The heads are not part of it: a sweep without a solver's head is not
+        wrong, a bake with that solver predicts the head exactly at its α (:func:`exact_prediction`)."""
         ckpt = resolve_checkpoint(self.checkpoint)
         return {"grid": Path(grid_path).name, "checkpoint": checkpoint_identity(ckpt),
                 "count": self.resolved_sweep_count(), "seed": int(self.seed), "steps": self.resolved_steps(),
-                "heads": sorted(self.heads), "precision": precision_of(self.device)}
+                "precision": precision_of(self.device)}
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -60,14 +60,22 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
     from unipixie.core.blender_io import bake as bio
     from unipixie.core.blender_io import pipeline as pio
 
+    from unipixie.core.pipeline import DONE, PipelineSettings
+
     bpy.ops.wm.open_mainfile(filepath=summary["blend"])
-    for name, b in bakes.items():
-        obj = bpy.data.objects[name]
-        assert bio.bake_record(obj)["solver"] == b["solver"]
-        rec = pio.read_record(obj)
-        assert rec.file("features", "grid") is not None and rec.file("predict", "sweep") is not None
-        moved = np.linalg.norm(bio.evaluated_positions(obj, demo.QUICK.frames) - bio.evaluated_positions(obj, 1), axis=1)
-        assert moved.max() > demo.MOVE_THRESHOLD
+    settings = PipelineSettings(view_count=demo.QUICK.views, checkpoint=str(tiny_checkpoint),
+                                sweep_count=demo.QUICK.sweep_count)
+    with bio.registered_properties():
+        for name, b in bakes.items():
+            obj = bpy.data.objects[name]
+            assert bio.bake_record(obj)["solver"] == b["solver"]
+            rec = pio.read_record(obj)
+            assert rec.file("features", "grid") is not None and rec.file("predict", "sweep") is not None
+            states = pio.states(obj, settings)       # copies too: the fingerprint ignores placement and the bake
+            assert all(st.state == DONE for st in states.values()), (name, states)
+            moved = np.linalg.norm(bio.evaluated_positions(obj, demo.QUICK.frames) - bio.evaluated_positions(obj, 1),
+                                   axis=1)
+            assert moved.max() > demo.MOVE_THRESHOLD
     a0, a1 = (bpy.data.objects[b["object"]] for b in (mpm[0], mpm[-1]))
     d0 = bio.evaluated_positions(a0, demo.QUICK.frames) - bio.evaluated_positions(a0, 1)
     d1 = bio.evaluated_positions(a1, demo.QUICK.frames) - bio.evaluated_positions(a1, 1)
