@@ -355,7 +355,7 @@ def test_bad_input_gets_a_clear_error_and_changes_nothing(blender):
         bpy.ops.unipixie.bake()
     cube.unipixie.bake_effects = ""
     cube.unipixie.bake_material_source = "model"
-    with pytest.raises(RuntimeError, match="needs the UniPixie model"):
+    with pytest.raises(RuntimeError, match="needs the UniPixie model|has no predicted material yet"):
         bpy.ops.unipixie.bake()
     assert _snapshot(bpy) == before and bio.bake_record(cube) is None
     with pytest.raises(UserError, match="no UniPixie bake to clear"):
@@ -489,7 +489,7 @@ def test_cli_errors_are_one_line(blender, tmp_path):
         return res.returncode, res.stderr.strip().splitlines()
 
     code, err = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
-    assert code == 2 and "needs the UniPixie model" in err[-1] and not any("Traceback" in e for e in err)
+    assert code == 2 and ("needs the UniPixie model" in err[-1] or "has no predicted material yet" in err[-1]) and not any("Traceback" in e for e in err)
     code, err = run(str(scene), "--object", "Nope", "--E", "1e5", "--out", str(tmp_path / "o.blend"))
     assert code == 2 and "no object named 'Nope'" in err[-1]
     code, err = run(str(scene), "--object", "CubeA", "--E", "1e5", "--frames", "9-2", "--out", str(tmp_path / "o.blend"))
@@ -529,7 +529,7 @@ def test_bake_through_the_installed_extension_module(blender, tmp_path):
     listed = res.stdout.split("output file(s)")[1]
     assert "2 of 4 job(s)" in res.stdout and "o_CubeA_1.blend" in listed and "o_CubeB_1.blend" in listed
     res = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
-    assert res.returncode == 2 and "needs the UniPixie model" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and ("needs the UniPixie model" in res.stderr or "has no predicted material yet" in res.stderr) and "Traceback" not in res.stderr
 
 
 def test_bench_bake_runs_and_times_simulation_and_writing(blender, tmp_path):
