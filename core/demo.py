@@ -276,7 +276,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     stages = _Stages(progress, say, {"objects": 2, "features": 8 if quick else 14, "predict": 10 if quick else 30,
                                      "bake": 20 if quick else 45, "pictures": 3})
     settings = PipelineSettings(view_count=plan.views, resolution=plan.resolution, checkpoint=str(ckpt),
-                                sweep_count=plan.sweep_count, device=device)
+                                sweep_count=plan.sweep_count, device=device).with_model_recipe()
 
     with registered_properties():
         pio.ensure_model_material()

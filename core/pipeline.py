@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 import threading
-from dataclasses import asdict, dataclass, field
+from dataclasses import replace, asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Optional
 
@@ -343,6 +343,22 @@ class PipelineSettings:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def with_model_recipe(self) -> "PipelineSettings":
+        """These settings with the views rendered as the model's training objects were (engine, view count,
+        resolution, samples from the checkpoint's ``feature_recipe.json``), so the model sees features from
+        its training distribution.  Unchanged when the checkpoint has no recipe or is not installed."""
+        from .model.checkpoint import read_feature_recipe
+
+        try:
+            ckpt = resolve_checkpoint(self.checkpoint)
+        except UserError:
+            return self
+        recipe = read_feature_recipe(ckpt)
+        if recipe is None:
+            return self
+        return replace(self, engine=recipe["engine"], view_count=recipe["view_count"],
+                       resolution=recipe["resolution"], samples=recipe["samples"])
 
 
 def check_settings(checkpoint: str = "", clip_weights: str = "", cache_dir: str = "", device: str = "cpu",

@@ -150,6 +150,12 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     from unipixie.training.train import main as train_main
 
     assert train_main(["--data", str(built), "--out", str(ck), "--steps", "2", "--preset", "tiny", "--device", "cpu"]) == 0
+    # the checkpoint remembers how the training objects were rendered (the pipeline renders new objects so)
+    from unipixie.core.model.checkpoint import read_feature_recipe
+
+    build = json.loads((built / "build.json").read_text())
+    assert read_feature_recipe(ck) == {"engine": build["engine"], "view_count": build["views"],
+                                       "resolution": build["render_resolution"], "samples": build["samples"]}
     bl = tmp_path / "unet"
     baselines.train(baselines.BaselineTrainSettings(data=str(built), out=str(bl), steps=2, base=4, levels=2,
                                                     device="cpu"), log=None)

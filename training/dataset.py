@@ -373,9 +373,19 @@ def init_build(root, settings: BuildSettings) -> BuildSettings:
         if diff:
             raise UserError(f"{root} was built with other settings ({', '.join(diff)}); build into a fresh directory "
                             "or repeat the original options")
+        _write_feature_recipe(root, old)
         return old
     _atomic_write_text(path, json.dumps(settings.to_dict(), indent=1))
+    _write_feature_recipe(root, settings)
     return settings
+
+
+def _write_feature_recipe(root: Path, settings: BuildSettings) -> None:
+    """``feature_recipe.json``: how the objects' views are rendered; training copies it into the checkpoint so the
+    pipeline renders new objects the same way (core.model.checkpoint.read_feature_recipe)."""
+    recipe = {"engine": str(settings.engine).lower(), "view_count": int(settings.views),
+              "resolution": int(settings.render_resolution), "samples": int(settings.samples)}
+    _atomic_write_text(root / "feature_recipe.json", json.dumps(recipe, indent=1))
 
 
 def build(root, count: int, settings: BuildSettings | None = None, shard: tuple[int, int] = (0, 1),

@@ -283,7 +283,21 @@ def unpack(pack_dir, out_dir) -> int:
     tmp = out / ".split.json.tmp"
     tmp.write_text(json.dumps(split, indent=1))
     tmp.replace(out / "split.json")
+    recipe = _recipe_of(read_index(pack_dir))
+    if recipe is not None:
+        (out / "feature_recipe.json").write_text(json.dumps(recipe, indent=1))
     return n
+
+
+def _recipe_of(index: dict):
+    """How the packed objects were rendered (from the dataset card's build settings), or None.  Written beside the
+    samples so that training copies it into the checkpoint (``feature_recipe.json``)."""
+    settings = (index.get("dataset_card") or {}).get("settings") or {}
+    try:
+        return {"engine": str(settings["engine"]).lower(), "view_count": int(settings["views"]),
+                "resolution": int(settings["render_resolution"]), "samples": int(settings.get("samples", 8))}
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def main(argv=None) -> int:

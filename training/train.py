@@ -295,6 +295,9 @@ def _save(out: Path, objective, optimizer, step: int, s: TrainSettings, fingerpr
     save_model(objective.model, out, dtype=dtype, info={"step": step, "data_fingerprint": fingerprint,
                                                           "preset": s.preset})
     save_training_state(out, optimizer, step, asdict(s), fingerprint, extra=stats)
+    recipe = Path(s.data) / "feature_recipe.json"   # how the training objects were rendered (training/pack.py)
+    if recipe.is_file():
+        (Path(out) / "feature_recipe.json").write_text(recipe.read_text())
 
 
 # ---------------------------------------------------------------------------- the loop

@@ -56,7 +56,7 @@ def pipeline_settings(context, obj=None) -> core.PipelineSettings:
         view_count=int(prefs.default_view_count),
         clip_weights=bpy.path.abspath(prefs.clip_weights) if prefs.clip_weights else "",
         checkpoint=bpy.path.abspath(prefs.checkpoint) if prefs.checkpoint else "",
-        device=str(prefs.device))
+        device=str(prefs.device)).with_model_recipe()
 
 
 def _set(group, name: str, value) -> None:

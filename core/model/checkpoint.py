@@ -33,6 +33,10 @@ from .network import UniPixieModel
 
 MODEL_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+RECIPE_FILE = "feature_recipe.json"
+"""Optional: how the training objects' views were rendered (engine, view count, resolution, samples) —
+the pipeline renders new objects the same way so the model sees features from its training distribution."""
+RECIPE_KEYS = ("engine", "view_count", "resolution", "samples")
 TRAINING_TENSORS = "training_state.safetensors"
 TRAINING_JSON = "training_state.json"
 WEIGHTS_FORMAT = "unipixie.model_weights/1"
@@ -76,6 +80,33 @@ def save_model(model: UniPixieModel, directory, dtype: Optional[torch.dtype] = N
     model.cfg.save(tmpc)
     _replace(tmpc, d / CONFIG_FILE)
     return d
+
+
+def write_feature_recipe(directory, recipe: dict) -> Path:
+    """Write ``feature_recipe.json`` (keys :data:`RECIPE_KEYS`) into a checkpoint or data directory."""
+    missing = [k for k in RECIPE_KEYS if k not in recipe]
+    if missing:
+        raise ValueError(f"feature recipe lacks {missing}")
+    path = Path(directory) / RECIPE_FILE
+    _write_json(path, {k: recipe[k] for k in RECIPE_KEYS})
+    return path
+
+
+def read_feature_recipe(directory) -> Optional[dict]:
+    """The checkpoint's feature recipe, or None when it has none (then the pipeline's own defaults apply)."""
+    path = Path(directory) / RECIPE_FILE
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+        recipe = {"engine": str(doc["engine"]).lower(), "view_count": int(doc["view_count"]),
+                  "resolution": int(doc["resolution"]), "samples": int(doc["samples"])}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise UserError(f"{path}: not a readable feature recipe ({exc})") from None
+    if recipe["engine"] not in ("cycles", "workbench") or min(recipe["view_count"], recipe["resolution"],
+                                                               recipe["samples"]) < 1:
+        raise UserError(f"{path}: engine must be cycles or workbench and the counts positive, got {recipe}")
+    return recipe
 
 
 def read_config(directory) -> ModelConfig:
