@@ -10,6 +10,8 @@ result entries as ``shared/specs/benchmarks.md`` defines them::
 
 :func:`record` merges them into the JSON file: an entry replaces an earlier
 one only when case, device and metric are the same; everything else is kept.
+The benchmarks share their timing (:func:`median_time`, :func:`synchronized_times`) and the jelly
+sphere drop that ``bench lbs`` and ``bench spring`` both measure (:func:`sphere_drop`, :func:`sphere_mesh`).
 """
 
 from __future__ import annotations
@@ -73,6 +75,48 @@ def median_time(fn: Callable[[], object], runs: int = 5, warmup: int = 1) -> tup
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times), times
+
+
+def synchronized_times(fn: Callable[[], object], runs: int, wp, device: str) -> list[float]:
+    """Wall times in seconds of ``runs`` calls of ``fn()``, each between two ``wp.synchronize_device(device)``
+    (so the work a call leaves queued on a GPU is counted)."""
+    times = []
+    for _ in range(runs):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+# --------------------------------------------------------------------------- the jelly sphere drop
+# the case of ``bench lbs`` and ``bench spring`` (the same object, so the two solvers' figures compare)
+SPHERE_E, SPHERE_NU, SPHERE_DENSITY = 1.0e5, 0.3, 1000.0  # Pa, -, kg/m³
+SPHERE_RADIUS = 0.1  # m
+
+
+def sphere_drop():
+    """(material, scenario) of the jelly sphere drop: homogeneous jelly of :data:`SPHERE_E`,
+    :data:`SPHERE_NU`, :data:`SPHERE_DENSITY`, falling at 1 m/s onto a frictionless ground under gravity."""
+    from ...solvers.material_sampling import HomogeneousMaterial
+    from ...solvers.scenario import Scenario
+
+    return (HomogeneousMaterial(SPHERE_E, SPHERE_NU, SPHERE_DENSITY),
+            Scenario(initial_velocity=[0.0, 0.0, -1.0]))
+
+
+def sphere_mesh(large: bool = False):
+    """The dropped sphere (radius :data:`SPHERE_RADIUS`, its lowest point 2 cm above the ground) as a
+    trimesh: an icosphere of 642 vertices, or (``large``) a UV sphere of 101,122 vertices."""
+    import trimesh
+
+    if large:
+        mesh = trimesh.creation.uv_sphere(radius=SPHERE_RADIUS, count=[160, 320])
+    else:
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS)
+    mesh.apply_translation((0.0, 0.0, SPHERE_RADIUS + 0.02))
+    return mesh
 
 
 def print_table(results: list[dict]) -> None:

@@ -31,10 +31,10 @@ import time
 
 import numpy as np
 
+from . import sphere_drop, sphere_mesh, synchronized_times
+
 HELP = "LBS solver throughput (implicit steps/s): 500 cubature points, 100k-vertex mesh output, batches, skinning fit"
 
-E_BENCH, NU_BENCH, RHO_BENCH = 1.0e5, 0.3, 1000.0
-RADIUS = 0.1
 STEP = 5.0e-3
 
 
@@ -68,26 +68,11 @@ def _print_breakdown(phases: dict, inner: dict, evaluations: dict, steps: int) -
           f"evaluations/step ({evaluations['trial_rows'] / max(evaluations['trial'], 1):.2f} rows each)", flush=True)
 
 
-def _timed(fn, runs: int, wp, device) -> list[float]:
-    times = []
-    for _ in range(runs):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        times.append(time.perf_counter() - t0)
-    return times
-
-
 def run(args) -> list[dict]:
-    import trimesh
-
     from ...core.errors import UserError
     from ...solvers import effects as fx
     from ...solvers import lbs, lbs_fit
     from ...solvers.body import Body
-    from ...solvers.material_sampling import HomogeneousMaterial
-    from ...solvers.scenario import Scenario
     from ...solvers.warp_runtime import device_description, init_warp, resolve_device
 
     wp = init_warp()
@@ -96,9 +81,7 @@ def run(args) -> list[dict]:
         raise UserError("--runs must be at least 1 and --cubature at least 4")
     steps = args.steps or (200 if device.startswith("cuda") else 30)
     described = device_description(device)
-    material = HomogeneousMaterial(E_BENCH, NU_BENCH, RHO_BENCH)
-    scenario = Scenario(initial_velocity=[0.0, 0.0, -1.0])
-    centre = (0.0, 0.0, RADIUS + 0.02)
+    material, scenario = sphere_drop()
     frames = np.arange(steps + 1) * STEP
     settings = {"cubature_points": args.cubature, "max_dt": STEP, "line_search_candidates": args.line_search_candidates}
     results = []
@@ -113,7 +96,7 @@ def run(args) -> list[dict]:
         go = (lambda: sim.run([])) if effects_lists is None else (lambda: sim.run_batch(effects_lists))  # noqa: E731
         traj = go()
         traj = traj[0] if isinstance(traj, list) else traj
-        times = _timed(go, args.runs, wp, device)
+        times = synchronized_times(go, args.runs, wp, device)
         med = statistics.median(times)
         envs = 1 if effects_lists is None else len(effects_lists)
         n_steps = traj.meta["steps"]
@@ -137,11 +120,9 @@ def run(args) -> list[dict]:
         _print_breakdown(phases, inner, meta["evaluations"], n_steps)
         return sim
 
-    ico = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
-    ico.apply_translation(centre)
+    ico = sphere_mesh()
     if not args.skip_mesh:
-        big = trimesh.creation.uv_sphere(radius=RADIUS, count=[160, 320])  # 101,122 vertices
-        big.apply_translation(centre)
+        big = sphere_mesh(large=True)
         bench(f"{args.cubature} cubature points, {len(big.vertices) // 1000}k-vertex mesh, jelly sphere drop", big)
     sim = bench(f"{args.cubature} cubature points, {len(ico.vertices)} vertices, jelly sphere drop", ico)
     effs = [[], [fx.make("linear_drag", c=1.0)], [fx.make("quadratic_drag", k=1.0)],

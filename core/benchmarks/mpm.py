@@ -32,9 +32,10 @@ variant's with the first variant's.  A variant that fails is reported and skippe
 import functools
 import math
 import statistics
-import time
 
 import numpy as np
+
+from . import synchronized_times
 
 HELP = "MPM solver throughput (particle-substeps/s) at several particle counts, with a reference APIC solver"
 
@@ -267,17 +268,6 @@ def _cube(count: int) -> np.ndarray:
     return pts[np.random.default_rng(0).permutation(len(pts))]
 
 
-def _timed(fn, runs: int, wp, device) -> list[float]:
-    times = []
-    for _ in range(runs):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        times.append(time.perf_counter() - t0)
-    return times
-
-
 def _label(count: int) -> str:
     """Case label of a requested size: 50000 -> '50k', 1000000 -> '1M'."""
     return f"{count / 1e6:g}M" if count >= 1_000_000 else f"{count / 1e3:g}k" if count >= 1000 else str(count)
@@ -344,7 +334,7 @@ def run(args) -> list[dict]:
             ref_times = []
             for _ in range(args.runs):
                 ref = ReferenceAPIC(wp, device, points, velocity, dx, dt, gravity, 0.0)
-                ref_times += _timed(lambda: ref.step(substeps), 1, wp, device)
+                ref_times += synchronized_times(lambda: ref.step(substeps), 1, wp, device)
             ref_rate = n * substeps / statistics.median(ref_times)
             ref_x = ref.x.numpy()
             results.append({"case": f"{_label(requested)} particles, jelly, drop, reference APIC", "device": described,
@@ -384,7 +374,7 @@ def _measure_variant(sim, variant, requested, n, substeps, args, wp, device, des
     """Time one variant (settings already applied): warm-up, ``--runs`` timed runs, the final positions against
     the reference and the first variant, and the per-kernel breakdown."""
     last = {"traj": sim.run([])}  # warm-up (uploads the initial state, captures graphs)
-    ours = _timed(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
+    ours = synchronized_times(lambda: last.update(traj=sim.run([])), args.runs, wp, device)
     ours_rate = n * substeps / statistics.median(ours)
     label = _label(requested) + (", unsorted" if args.no_sort else "")
     entry = {"case": f"{label} particles, jelly, drop" + ("" if variant == "default" else f", {variant}"),

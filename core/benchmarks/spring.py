@@ -21,14 +21,12 @@ substeps of the run / its wall time.
 from __future__ import annotations
 
 import statistics
-import time
 
 import numpy as np
 
-HELP = "spring-mass solver throughput (substeps/s): 2048 anchors, a 100k-vertex mesh bound, diagnosis-size runs"
+from . import sphere_drop, sphere_mesh, synchronized_times
 
-E_BENCH, NU_BENCH, RHO_BENCH = 1.0e5, 0.3, 1000.0
-RADIUS = 0.1
+HELP = "spring-mass solver throughput (substeps/s): 2048 anchors, a 100k-vertex mesh bound, diagnosis-size runs"
 
 
 def add_arguments(p):
@@ -40,26 +38,11 @@ def add_arguments(p):
     p.add_argument("--skip-mesh", action="store_true", help="skip the 100k-vertex case")
 
 
-def _timed(fn, runs: int, wp, device) -> list[float]:
-    times = []
-    for _ in range(runs):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        fn()
-        wp.synchronize_device(device)
-        times.append(time.perf_counter() - t0)
-    return times
-
-
 def run(args) -> list[dict]:
-    import trimesh
-
     from ...core.errors import UserError
     from ...solvers import effects as fx
     from ...solvers import spring_mass as sm
     from ...solvers.body import Body
-    from ...solvers.material_sampling import HomogeneousMaterial
-    from ...solvers.scenario import Scenario
     from ...solvers.warp_runtime import device_description, init_warp, resolve_device
 
     wp = init_warp()
@@ -68,9 +51,7 @@ def run(args) -> list[dict]:
         raise UserError("--runs must be at least 1 and --anchors at least 2")
     duration = args.duration or (0.5 if device.startswith("cuda") else 0.05)
     described = device_description(device)
-    material = HomogeneousMaterial(E_BENCH, NU_BENCH, RHO_BENCH)
-    scenario = Scenario(initial_velocity=[0.0, 0.0, -1.0])
-    centre = (0.0, 0.0, RADIUS + 0.02)
+    material, scenario = sphere_drop()
     results = []
 
     def bench(case, mesh, anchors, frames, effects_lists=None, tracked=None, metric="substeps_per_s"):
@@ -82,7 +63,7 @@ def run(args) -> list[dict]:
             go = lambda: sim.run_batch(effects_lists)  # noqa: E731
         traj = go()
         traj = traj[0] if isinstance(traj, list) else traj
-        times = _timed(go, args.runs, wp, device)
+        times = synchronized_times(go, args.runs, wp, device)
         med = statistics.median(times)
         subs = traj.meta["substeps"]
         envs = 1 if effects_lists is None else len(effects_lists)
@@ -95,16 +76,13 @@ def run(args) -> list[dict]:
         print(f"  {case}: {value:.4g} {metric} (run {med:.3g} s, {subs} substeps, {sim.network.count} anchors)",
               flush=True)
 
-    ico = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
-    ico.apply_translation(centre)
+    ico = sphere_mesh()
     frames = np.linspace(0.0, duration, 11)
     bench(f"{args.anchors} anchors, jelly sphere drop", ico, args.anchors, frames)
     if not args.skip_mesh:
-        big = trimesh.creation.uv_sphere(radius=RADIUS, count=[160, 320])  # 101,122 vertices
-        big.apply_translation(centre)
+        big = sphere_mesh(large=True)
         bench(f"{args.anchors} anchors, {len(big.vertices) // 1000}k-vertex mesh bound", big, args.anchors, frames)
-    small = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
-    small.apply_translation(centre)
+    small = sphere_mesh()
     rng = np.random.default_rng(0)
     tracked = small.vertices[rng.choice(len(small.vertices), 250, replace=False)]
     diag_frames = np.linspace(0.0, 1.0, 101)
