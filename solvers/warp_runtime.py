@@ -113,13 +113,16 @@ def device_description(device: str) -> str:
     d = wp.get_device(device)
     if d.is_cuda:
         return str(d.name)
+    return cpu_description()
+
+
+def cpu_description(fallback: str = "CPU") -> str:
+    """The CPU model that /proc/cpuinfo names (``fallback`` where it names none) with the core count,
+    e.g. ``"AMD EPYC (2 cores)"``.  Needs no Warp (the torch-only benchmarks use it too)."""
     model = ""
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
+            model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
     except OSError:
         pass
-    return f"{model or 'CPU'} ({os.cpu_count()} cores)"
+    return f"{model or fallback} ({os.cpu_count()} cores)"

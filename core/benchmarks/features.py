@@ -52,13 +52,9 @@ def _device_name(device: str) -> str:
         import torch
 
         return torch.cuda.get_device_name(torch.device(device))
-    model = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
-    except OSError:
-        pass
-    return f"{model or 'CPU'} ({os.cpu_count()} cores)"
+    from ...solvers.warp_runtime import cpu_description
+
+    return cpu_description()
 
 
 def save_bench_views(path, views, vertices_normalised, faces) -> Path:

@@ -11,7 +11,6 @@ with several GPUs, with torchrun over ``--ddp-procs`` GPUs.
 from __future__ import annotations
 
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -49,22 +48,12 @@ def add_arguments(p):
                         "all11 (all heads, 11 alphas), train (training samples/s); default all")
 
 
-def _cpu_name() -> str:
-    name = platform.processor() or "CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                name = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{name} ({os.cpu_count()} cores)"
-
-
 def _device_name(dev) -> str:
     import torch
 
-    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else _cpu_name()
+    from ...solvers.warp_runtime import cpu_description
+
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else cpu_description(platform.processor() or "CPU")
 
 
 def _make_dataset(root: Path, resolution: int, voxels: int, feature_dim: int, anchors: int, count: int):
