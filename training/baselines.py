@@ -33,16 +33,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
-if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie` (as training/train.py does)
-    import importlib.util
+if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie`
+    import runpy
 
-    _root = Path(__file__).resolve().parents[1]
-    if "unipixie" not in sys.modules:
-        _spec = importlib.util.spec_from_file_location("unipixie", _root / "__init__.py",
-                                                       submodule_search_locations=[str(_root)])
-        _pkg = importlib.util.module_from_spec(_spec)
-        sys.modules["unipixie"] = _pkg
-        _spec.loader.exec_module(_pkg)
+    runpy.run_path(str(Path(__file__).resolve().parents[1] / "standalone.py"))["import_checkout"]()
     __package__ = "unipixie.training"
 
 import numpy as np  # noqa: E402

@@ -17,16 +17,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a file on a machine with only torch + numpy + safetensors (no install)
-    import importlib.util
+if __package__ in (None, ""):  # run as a file with only torch + numpy + safetensors (see standalone.py)
+    import runpy
 
-    _root = Path(__file__).resolve().parents[2]
-    if "unipixie" not in sys.modules:
-        _spec = importlib.util.spec_from_file_location("unipixie", _root / "__init__.py",
-                                                       submodule_search_locations=[str(_root)])
-        _pkg = importlib.util.module_from_spec(_spec)
-        sys.modules["unipixie"] = _pkg
-        _spec.loader.exec_module(_pkg)
+    runpy.run_path(str(Path(__file__).resolve().parents[2] / "standalone.py"))["import_checkout"]()
     __package__ = "unipixie.core.benchmarks"
 
 TRAIN_SCRIPT = Path(__file__).resolve().parents[2] / "training" / "train.py"
