@@ -21,6 +21,7 @@ import bpy
 import numpy as np
 
 from ..errors import UserError
+from .bake import scenario_from_scene, scene_fps, unit_scale, world_vertices
 
 ERROR_COLOR_ATTRIBUTE = "unipixie_error"
 ERROR_VALUE_ATTRIBUTE = "unipixie_error_m"
@@ -31,28 +32,6 @@ MEASUREMENT_PATH_PROPERTY = "unipixie_measurement"
 
 
 # --------------------------------------------------------------------------- reading motion
-def _scene_fps(scene) -> float:
-    return float(scene.render.fps) / float(scene.render.fps_base or 1.0)
-
-
-def _unit_scale(scene) -> float:
-    us = scene.unit_settings
-    return float(us.scale_length) if us.system != "NONE" else 1.0
-
-
-def _evaluated_world(obj, depsgraph, scale: float) -> np.ndarray:
-    ev = obj.evaluated_get(depsgraph)
-    me = ev.to_mesh()
-    try:
-        n = len(me.vertices)
-        co = np.empty(n * 3, dtype=np.float32)
-        me.vertices.foreach_get("co", co)
-    finally:
-        ev.to_mesh_clear()
-    m = np.array(ev.matrix_world, dtype=np.float64)
-    return (co.reshape(n, 3).astype(np.float64) @ m[:3, :3].T + m[:3, 3]) * scale
-
-
 def closed_triangles(me) -> Optional[np.ndarray]:
     """(F, 3) int64 triangles of a mesh datablock when they form a closed, consistently oriented
     surface, else ``None``."""
@@ -92,7 +71,7 @@ def measurement_from_object(obj, frame_start: Optional[int] = None, frame_end: O
     f1 = scene.frame_end if frame_end is None else int(frame_end)
     if f1 - f0 < 3:
         raise UserError(f"frames {f0}..{f1}: a measurement needs at least 4 frames")
-    scale = _unit_scale(scene)
+    scale = unit_scale(scene)
     n_rest = len(obj.data.vertices)
     if n_rest == 0:
         raise UserError(f"object '{obj.name}' has no vertices")
@@ -102,8 +81,7 @@ def measurement_from_object(obj, frame_start: Optional[int] = None, frame_end: O
     try:
         for i, f in enumerate(frames):
             scene.frame_set(int(f))
-            dg = bpy.context.evaluated_depsgraph_get()
-            p = _evaluated_world(obj, dg, scale)
+            p = world_vertices(obj, scene, bpy.context.evaluated_depsgraph_get())
             if len(p) != n_rest:
                 raise UserError(f"object '{obj.name}': its evaluated mesh has {len(p)} vertices at frame {f} but the "
                                 f"mesh has {n_rest}; a modifier changes the topology (apply or disable it)")
@@ -121,15 +99,13 @@ def measurement_from_object(obj, frame_start: Optional[int] = None, frame_end: O
     warnings = [] if faces is not None else [f"object '{obj.name}' is not a closed surface: the solid is taken as "
                                              "the convex hull of its vertices"]
     if scenario is None:
-        from .bake import scenario_from_scene
-
         scenario = scenario_from_scene(obj, scene)
     if material is None:
         s = getattr(obj, "unipixie", None)
         if s is not None and hasattr(s, "bake_E"):
             material = MeasuredMaterial(float(s.bake_E), float(s.bake_nu), float(s.bake_density),
                                         str(getattr(s, "bake_material_class", "jelly") or "jelly"))
-    times = (frames - f0) / _scene_fps(scene)
+    times = (frames - f0) / scene_fps(scene)
     meas = Measurement(positions=pos, times=times, scenario=scenario, rest_positions=rest, faces=faces,
                        material=material, source=f"Blender object '{obj.name}' frames {f0}-{f1}")
     meas.warnings.extend(warnings)
@@ -202,7 +178,7 @@ def create_measurement_object(measurement, name: str = "Measurement", scene=None
     scene = scene or bpy.context.scene
     pos = _filled(measurement.positions) + np.asarray(offset, dtype=np.float64)
     T, N, _ = pos.shape
-    scale = _unit_scale(scene)
+    scale = unit_scale(scene)
     local = (pos / scale).astype(np.float32)
     rest = (np.asarray(measurement.rest, dtype=np.float64) + np.asarray(offset)) / scale
     me = bpy.data.meshes.new(name)
@@ -223,7 +199,7 @@ def create_measurement_object(measurement, name: str = "Measurement", scene=None
         kb.data.foreach_set("co", local[t].ravel())
         blocks.append(kb)
     del basis
-    fps = _scene_fps(scene)
+    fps = scene_fps(scene)
     f0 = scene.frame_start if frame_start is None else int(frame_start)
     frames = f0 + (measurement.times - measurement.times[0]) * fps
     for t, kb in enumerate(blocks):
