@@ -148,9 +148,11 @@ _HANDLERS = ((bpy.app.handlers.undo_post, _restore_after_undo), (bpy.app.handler
              (bpy.app.handlers.load_post, _empty_trash_on_load))
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     for handlers, fn in _HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
@@ -160,5 +162,4 @@ def unregister():
     for handlers, fn in _HANDLERS:
         if fn in handlers:
             handlers.remove(fn)
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()

@@ -364,14 +364,15 @@ CLASSES = (UniPixieDiagnosisSettings, UNIPIXIE_OT_load_measurement, UNIPIXIE_OT_
            UNIPIXIE_OT_open_diagnosis_report, VIEW3D_PT_unipixie_diagnose)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Scene.unipixie_diagnosis = PointerProperty(type=UniPixieDiagnosisSettings)
 
 
 def unregister():
     if hasattr(bpy.types.Scene, "unipixie_diagnosis"):
         del bpy.types.Scene.unipixie_diagnosis
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()

@@ -173,14 +173,15 @@ class VIEW3D_PT_unipixie_features(bpy.types.Panel):
 CLASSES = (UniPixieFeatureState, UNIPIXIE_OT_render_views, UNIPIXIE_OT_compute_features, VIEW3D_PT_unipixie_features)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Object.unipixie_features = PointerProperty(type=UniPixieFeatureState)
 
 
 def unregister():
     if hasattr(bpy.types.Object, "unipixie_features"):
         del bpy.types.Object.unipixie_features
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()

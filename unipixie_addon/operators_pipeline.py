@@ -438,9 +438,11 @@ _HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph), (bpy.app.h
              (bpy.app.handlers.undo_post, _on_undo), (bpy.app.handlers.redo_post, _on_undo))
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     for handlers, fn in _HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
@@ -460,5 +462,4 @@ def unregister():
         bpy.app.timers.unregister(_refresh_pending)
     _PENDING.clear()
     _FINGERPRINTS.clear()
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()

@@ -65,11 +65,4 @@ class UNIPIXIE_OT_install_dependencies(JobOperator, bpy.types.Operator):
 CLASSES = (UNIPIXIE_OT_check_dependencies, UNIPIXIE_OT_install_dependencies)
 
 
-def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

@@ -96,11 +96,4 @@ class VIEW3D_PT_unipixie(bpy.types.Panel):
 CLASSES = (VIEW3D_PT_unipixie,)
 
 
-def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

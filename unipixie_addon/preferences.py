@@ -121,9 +121,11 @@ def get_preferences(context=None):
 CLASSES = (UNIPIXIE_AP_preferences, UNIPIXIE_OT_check_preferences)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
+
+
 def register():
-    for cls in CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     try:
         prefs = get_preferences(bpy.context)
         if prefs.cache_dir:
@@ -133,5 +135,4 @@ def register():
 
 
 def unregister():
-    for cls in reversed(CLASSES):
-        bpy.utils.unregister_class(cls)
+    _unregister_classes()
