@@ -11,6 +11,7 @@ import bpy
 
 from ..core.blender_io import bake as bio
 from .jobs import JobOperator
+from .panels import draw_frame_range
 from .properties import SOLVER_ITEMS
 
 
@@ -110,14 +111,7 @@ class VIEW3D_PT_unipixie_bake(bpy.types.Panel):
         box.prop(s, "bake_initial_velocity")
         box.prop(s, "bake_initial_angular_velocity")
         box.prop(s, "bake_effects")
-        col = layout.column(align=True)
-        col.prop(s, "use_bake_frame_range")
-        if s.use_bake_frame_range:
-            row = col.row(align=True)
-            row.prop(s, "bake_frame_start")
-            row.prop(s, "bake_frame_end")
-        else:
-            col.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end} (scene)")
+        draw_frame_range(layout, s, context.scene)
         layout.prop(s, "bake_output")
         layout.prop(s, "bake_interpolation")
         if s.solver == "mpm":

@@ -23,6 +23,19 @@ STATE_ICONS = {core.DONE: "CHECKMARK", core.STALE: "FILE_REFRESH", core.NOT_DONE
 STEP_ICONS = {"render": "RENDER_STILL", "features": "LIGHTPROBE_VOLUME", "predict": "SHADERFX", "bake": "PHYSICS"}
 
 
+def draw_frame_range(layout, settings, scene) -> None:
+    """The bake's frame range (``settings``: an object's ``unipixie``): its own start and end when
+    *use_bake_frame_range* is on, else the scene's range as a label."""
+    col = layout.column(align=True)
+    col.prop(settings, "use_bake_frame_range")
+    if settings.use_bake_frame_range:
+        row = col.row(align=True)
+        row.prop(settings, "bake_frame_start")
+        row.prop(settings, "bake_frame_end")
+    else:
+        col.label(text=f"Frames {scene.frame_start}-{scene.frame_end} (scene)")
+
+
 class VIEW3D_PT_unipixie(bpy.types.Panel):
     bl_idname = "VIEW3D_PT_unipixie"
     bl_label = "UniPixie"
@@ -74,14 +87,7 @@ class VIEW3D_PT_unipixie(bpy.types.Panel):
                 layout.prop(s, "device")
             else:
                 layout.label(text="Device: CPU (no CUDA GPU found)", icon="INFO")
-            col = layout.column(align=True)
-            col.prop(s, "use_bake_frame_range")
-            if s.use_bake_frame_range:
-                row = col.row(align=True)
-                row.prop(s, "bake_frame_start")
-                row.prop(s, "bake_frame_end")
-            else:
-                col.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end} (scene)")
+            draw_frame_range(layout, s, context.scene)
             if s.status:
                 layout.label(text=f"Status: {s.status}")
             if s.last_error:
