@@ -63,6 +63,14 @@ class _FeatureOperatorMixin:
     def poll(cls, context):
         return _poll_object(context)
 
+    def _begin(self, context):
+        """The active object (a mesh, else a UserError), remembered by name for :meth:`_target`."""
+        obj = context.active_object
+        if obj is None or obj.type not in GEOMETRY_TYPES:
+            raise UserError("select a mesh object first")
+        self._object_name = obj.name
+        return obj
+
     def _target(self):
         return bpy.data.objects.get(getattr(self, "_object_name", "") or "")
 
@@ -81,10 +89,7 @@ class UNIPIXIE_OT_render_views(_FeatureOperatorMixin, JobOperator, bpy.types.Ope
         from ..core.blender_io.render import describe_subject
         from ..core.features import render_stage, save_view_sheet
 
-        obj = context.active_object
-        if obj is None or obj.type not in GEOMETRY_TYPES:
-            raise UserError("select a mesh object first")
-        self._object_name = obj.name
+        obj = self._begin(context)
         options = _options(self, context)
         fingerprint = describe_subject([obj]).fingerprint
         views, path = yield from render_stage([obj], options, fingerprint)
@@ -112,10 +117,7 @@ class UNIPIXIE_OT_compute_features(_FeatureOperatorMixin, JobOperator, bpy.types
     def make_job(self, context):
         from ..core.features import features_job, save_feature_slices
 
-        obj = context.active_object
-        if obj is None or obj.type not in GEOMETRY_TYPES:
-            raise UserError("select a mesh object first")
-        self._object_name = obj.name
+        obj = self._begin(context)
         result = yield from features_job([obj], _options(self, context))
         slices = result.grid_path.with_name(result.grid_path.stem + "_slices.png")
         if not slices.is_file():
