@@ -203,10 +203,6 @@ class LBSSettings:
         raise UserError(f"LBS settings must be an LBSSettings or a dict, got {type(settings).__name__}")
 
 
-def _torch_device(device: str) -> str:
-    return "cpu" if device == "cpu" else device
-
-
 def lift_basis(weights: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """a(X) = w ⊗ [x̂; 1]: (N, H+1) weights and (N, 3) normalised points -> (N, 4(H+1))."""
     xh1 = np.concatenate([x_hat, np.ones((len(x_hat), 1))], axis=1)
@@ -414,7 +410,7 @@ class _ElasticTerms:
 
         wp = sim._wp
         self.torch = torch
-        dev = _torch_device(sim.device)
+        dev = sim.device  # Warp's device names (cpu, cuda:N) are torch's
         self.cuda = dev != "cpu"
         self.profile = bool(profile) and self.cuda
         # separate host staging buffers and copies (a GPU; on the CPU only to test that path)
@@ -1005,7 +1001,7 @@ class LBSSimulation(Simulation):
         out = np.empty((E_env, T, N, 3), np.float32)
         if N == 0:
             return out
-        dev = _torch_device(self.device)
+        dev = self.device
         key = (points, dev)
         if key not in self._device_copies:   # kept between runs: the 100k-vertex basis is 18 MB
             self._device_copies[key] = (torch.as_tensor(np.asarray(lifted, np.float32), device=dev),
