@@ -42,7 +42,7 @@ from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
-from .errors import UserError
+from .errors import UserError, read_json
 from .progress import Progress, silent
 
 # --------------------------------------------------------------------------- constants
@@ -1335,10 +1335,7 @@ def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: manifest not found")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict):
         raise UserError(f"{path}: a manifest is a JSON object with 'format' and 'jobs'")
     if doc.get("format") != MANIFEST_FORMAT:

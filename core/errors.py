@@ -9,6 +9,9 @@ Anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 
 class UserError(Exception):
     """A problem with the user's input or environment, with a one-line explanation."""
@@ -29,3 +32,12 @@ class SimulationDiverged(UserError):
     """A solver produced NaN/inf or lost particles; the message names the frame and a remedy."""
 
     exit_code = 3
+
+
+def read_json(path):
+    """The parsed contents of the JSON file ``path``; a file that is not valid JSON is a :class:`UserError`
+    that names it (whether the file exists is the caller's check, with its own remedy)."""
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None

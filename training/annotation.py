@@ -42,7 +42,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..core.errors import UserError
+from ..core.errors import UserError, read_json
 from ..solvers import materials
 
 ANNOTATION_FORMAT = "unipixie.annotation/1"
@@ -253,10 +253,7 @@ class Annotation:
         p = Path(path)
         if not p.is_file():
             raise UserError(f"{p}: annotation file not found")
-        try:
-            d = json.loads(p.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{p}: not valid JSON ({exc})") from None
+        d = read_json(p)
         return cls.from_dict(d, str(p))
 
 

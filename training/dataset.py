@@ -37,7 +37,7 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from ..core.errors import CancelledError, UserError
+from ..core.errors import CancelledError, UserError, read_json
 from ..core.progress import Progress
 from . import annotation as ann_mod
 from .ground_truth import GroundTruthSettings
@@ -578,10 +578,7 @@ class DatasetDir:
         if not sp.is_file():
             raise UserError(f"{self.root}: no split.json; run 'unipixie dataset card {self.root}' after building, or "
                             "write {\"train\": [...], \"val\": [...], \"test\": [...]} yourself")
-        try:
-            self.splits = json.loads(sp.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{sp}: not valid JSON ({exc})") from None
+        self.splits = read_json(sp)
         if not isinstance(self.splits, dict) or not all(isinstance(v, list) for v in self.splits.values()):
             raise UserError(f"{sp}: must map split names to lists of object ids")
         bj = self.root / "build.json"

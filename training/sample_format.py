@@ -47,7 +47,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..core.errors import UserError
+from ..core.errors import UserError, read_json
 from ..core.types import FeatureGrid, GridGeometry
 from ..solvers.materials import NUM_CLASSES
 from ..solvers.skinning import LBS_PARAM_COUNT
@@ -243,10 +243,7 @@ def list_samples(data_dir, split: str = "train") -> list[Path]:
     files = sorted(p for p in root.rglob("*.npz") if not p.name.endswith(".tmp.npz"))
     split_path = root / SPLIT_FILE
     if split_path.is_file():
-        try:
-            splits = json.loads(split_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{split_path}: not valid JSON ({exc})") from None
+        splits = read_json(split_path)
         if split not in splits:
             raise UserError(f"{split_path}: no split {split!r} (has {', '.join(splits)})")
         wanted = set(str(x) for x in splits[split])

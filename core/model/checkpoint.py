@@ -27,7 +27,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from ..errors import UserError
+from ..errors import UserError, read_json
 from .config import ModelConfig
 from .network import UniPixieModel
 
@@ -215,10 +215,7 @@ def load_training_state(directory, optimizer: torch.optim.Optimizer) -> dict:
     p = d / TRAINING_JSON
     if not p.is_file():
         raise UserError(f"{d}: no {TRAINING_JSON}; this checkpoint cannot be resumed (it holds only a model)")
-    try:
-        doc = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{p}: not valid JSON ({exc})") from None
+    doc = read_json(p)
     if doc.get("format") != TRAINING_FORMAT:
         raise UserError(f"{p}: 'format' is {doc.get('format')!r}, expected {TRAINING_FORMAT!r}")
     tensors, _ = _read_tensors(d / TRAINING_TENSORS)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from ...solvers import materials
 from ...solvers.skinning import LBS_PARAM_COUNT
-from ..errors import UserError
+from ..errors import UserError, read_json
 from .normalization import DEFAULT_NORMALISATION, normalisation_from_dict, normalisation_to_dict
 
 CONFIG_FORMAT = "unipixie.model_config/1"
@@ -184,10 +184,7 @@ class ModelConfig:
         path = Path(path)
         if not path.is_file():
             raise UserError(f"{path}: model config not found (a checkpoint directory holds config.json and model.safetensors)")
-        try:
-            doc = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise UserError(f"{path}: not valid JSON ({exc})") from None
+        doc = read_json(path)
         if not isinstance(doc, dict) or doc.get("format") != CONFIG_FORMAT:
             raise UserError(f"{path}: 'format' is {doc.get('format') if isinstance(doc, dict) else None!r}, expected {CONFIG_FORMAT!r}")
         return cls.from_dict(doc.get("config", {}), where=str(path))
