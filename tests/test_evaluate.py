@@ -74,6 +74,7 @@ def test_table1_recomputes_from_files(tmp_path):
     assert m["objects"] == 2 and m["runtime_s"] == 0.25 and m["material_acc"] == 1.0
     assert m["logrho_mse"] < 1e-10 and m["nu_mse"] < 1e-12
     assert 0.003 < m["logE_mse"] < 0.03   # about 0.1²
+    assert m["logE_monotone_fraction"] == 1.0   # mean log E rises by 1 per 0.5 of alpha, noise 0.1/sqrt(10)
     with pytest.raises(UserError, match="no targets"):
         ev.table1(tmp_path)
 
@@ -122,3 +123,10 @@ def test_feature_quantisation_error_bound():
     err = np.abs(back.astype(np.float32) - feats.astype(np.float32))
     bound = scale / 510 + np.abs(feats.astype(np.float32)).max(0) * 2 ** -10
     assert np.all(err <= bound + 1e-6)
+
+
+def test_logE_monotonicity_check():
+    up = {"alphas": np.array([1.0, 0.0, 0.5]), "log10_E": np.array([[6.0, 6.0], [4.0, 4.0], [5.0, 5.0]])}
+    assert ev.logE_is_monotone(up)                       # unsorted alphas are sorted first
+    dip = {"alphas": np.array([0.0, 0.5, 1.0]), "log10_E": np.array([[4.0, 4.0], [5.0, 5.2], [5.0, 5.1]])}
+    assert not ev.logE_is_monotone(dip)                  # the mean falls from 5.1 to 5.05 between 0.5 and 1

@@ -127,6 +127,16 @@ def in_range_fractions(pred: dict, targets: dict, tolerances=TOLERANCES) -> dict
     return out
 
 
+def logE_is_monotone(pred: dict, slack: float = 1e-6) -> bool:
+    """Whether the object's mean log10 E over its occupied voxels does not decrease with α.
+
+    ``pred``: ``alphas`` (A,) and ``log10_E`` (A, K) log10 Pa.  ``slack``: allowed decrease (log10 Pa, round-off).
+    """
+    order = np.argsort(np.asarray(pred["alphas"], np.float64))
+    means = np.asarray(pred["log10_E"], np.float64)[order].mean(axis=1)
+    return bool(np.all(np.diff(means) >= -slack))
+
+
 def table1(pred_root) -> dict:
     """Table 1 from the raw predictions saved under ``pred_root`` (``predictions/``): method -> metrics."""
     root = Path(pred_root)
@@ -135,7 +145,7 @@ def table1(pred_root) -> dict:
         raise UserError(f"{root}: no targets/ folder; not an evaluation's predictions directory")
     methods = {}
     for mdir in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "targets"):
-        per_obj, runtimes, ranges = [], [], []
+        per_obj, runtimes, ranges, monotone = [], [], [], []
         for f in sorted(mdir.glob("*.npz")):
             with np.load(f, allow_pickle=False) as z:
                 pred = {k: z[k] for k in z.files}
@@ -144,6 +154,7 @@ def table1(pred_root) -> dict:
             per_obj.append(object_metrics(pred, targets))
             runtimes.append(float(pred["runtime_s"]))
             ranges.append(in_range_fractions(pred, targets))
+            monotone.append(logE_is_monotone(pred))
         if not per_obj:
             continue
         alphas = list(per_obj[0])
@@ -155,6 +166,7 @@ def table1(pred_root) -> dict:
             m[f"{key}_std"] = float(avg.std())
             m[f"{key}_per_alpha"] = {a: float(per_alpha[:, j].mean()) for j, a in enumerate(alphas)}
         m["runtime_s"] = float(np.median(runtimes))
+        m["logE_monotone_fraction"] = float(np.mean(monotone))
         m["runtime_s_mean"] = float(np.mean(runtimes))
         if ranges and ranges[0]:
             m["in_range"] = {a: {q: {t: float(np.mean([r[a][q][t] for r in ranges])) for t in ranges[0][a][q]}
@@ -637,6 +649,9 @@ def report_markdown(r: dict) -> str:
         L.append(f"| {name} | {m['logE_mse']:.4f} ± {m['logE_mse_std']:.3f} | {m['logrho_mse']:.4f} ± "
                  f"{m['logrho_mse_std']:.3f} | {m['nu_mse']:.5f} ± {m['nu_mse_std']:.4f} | "
                  f"{100 * m['material_acc']:.1f} % | {m['runtime_s']:.3f} |")
+    L += ["", "Mean log E over the object non-decreasing in α: " + ", ".join(
+        f"{name} {100 * m['logE_monotone_fraction']:.0f} % of objects" for name, m in r["table1"].items()
+        if "logE_monotone_fraction" in m), ""]
     L += ["", "Per α (log E MSE):", "", "| method | " + " | ".join(f"α = {a:g}" for a in r["alphas"]) + " |",
           "|---|" + "---|" * len(r["alphas"])]
     for name, m in r["table1"].items():
