@@ -299,7 +299,7 @@ def train(s: BaselineTrainSettings, log=print) -> dict:
         sched.step()
         losses.append(float(loss.detach()))
         if log and (step % s.log_every == 0 or step == s.steps - 1):
-            log(f"step {step + 1}/{s.steps}: loss {losses[-1]:.4g} (mse {float(mse):.4g}, ce {float(ce):.4g})")
+            log(f"step {step + 1}/{s.steps}: loss {losses[-1]:.4g} (mse {float(mse.detach()):.4g}, ce {float(ce.detach()):.4g})")
         if (step + 1) % s.save_every == 0 or step == s.steps - 1:
             save(net, cfg, s.out, {"step": step + 1, "data_fingerprint": data_fingerprint(files), "settings": asdict(s)})
     return {"losses": losses, "seconds": time.perf_counter() - t0, "steps": s.steps, "device": str(dev),

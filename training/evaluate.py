@@ -61,7 +61,10 @@ class EvalSettings:
     device: torch device of the models; solver_device: Warp device of the simulations.  seed: noise seed.
     max_objects: 0 = every object of the split.  simulate_objects: Table 2 objects (0 = no Table 2).
     fitters: run the specialist test-time fitters in Table 2.  render_frames / render_views /
-    render_resolution: the PSNR/SSIM renders (0 frames = no renders)."""
+    render_resolution: the PSNR/SSIM renders (0 frames = no renders).  mean_prediction: also evaluate
+    ``unipixie_mean``, the model's one-step prediction (steps = 1: the data-predicting network's output from
+    pure noise, its estimate of the conditional mean — the MSE-optimal point estimate), besides the
+    sampled ``unipixie`` (the paper's ODE sampler)."""
 
     alphas: tuple = (0.0, 0.5, 1.0)
     split: str = "test"
@@ -74,6 +77,7 @@ class EvalSettings:
     render_frames: int = 3
     render_views: int = 2
     render_resolution: int = 128
+    mean_prediction: bool = True
 
 
 # =========================================================================== metrics
@@ -223,7 +227,8 @@ class Methods:
         self.settings = settings
 
     def names(self) -> list:
-        return (["unipixie"] if self.model else []) + [b.name for b in self.baselines]
+        mean = ["unipixie_mean"] if self.model and self.settings.mean_prediction else []
+        return (["unipixie"] if self.model else []) + mean + [b.name for b in self.baselines]
 
     def predict_all(self, grid, alphas, heads=("mpm", "lbs", "spring_mass")) -> dict:
         """method -> (arrays for the predictions file, native prediction object), runtime included."""
@@ -239,6 +244,13 @@ class Methods:
             arrays = _unipixie_arrays(pred, alphas)
             arrays["runtime_s"] = np.float64(runtime)
             out["unipixie"] = (arrays, pred)
+            if s.mean_prediction:
+                mean = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, steps=1)
+                t = time.perf_counter()
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, steps=1)
+                arrays = _unipixie_arrays(mean, alphas)
+                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
+                out["unipixie_mean"] = (arrays, mean)
         for b in self.baselines:
             fields = b.predict(grid, alphas, seed=s.seed)
             t = time.perf_counter()
@@ -296,7 +308,7 @@ def simulate_methods(obj, gt: dict, sample, preds: dict, alphas, gt_settings, se
         if float(a) not in gt_alphas:
             continue
         for method, (arrays, native) in preds.items():
-            if method == "unipixie":
+            if method in ("unipixie", "unipixie_mean"):
                 field = native.mpm[i]
             else:
                 f = native[i]

@@ -32,6 +32,8 @@ def add_arguments(p):
     p.add_argument("--no-fitters", action="store_true", help="skip the specialist test-time fitters in Table 2")
     p.add_argument("--render-frames", type=int, default=3, help="rendered frames per α for PSNR/SSIM (0 = none)")
     p.add_argument("--render-views", type=_common.positive_int, default=2, help="views per rendered frame (default 2)")
+    p.add_argument("--no-mean-prediction", action="store_true",
+                   help="do not also evaluate 'unipixie_mean' (the model's one-step conditional-mean prediction)")
     p.add_argument("--render-resolution", type=_common.positive_int, default=128, help="render size (default 128)")
 
 
@@ -62,7 +64,8 @@ def run(args) -> int:
     settings = EvalSettings(alphas=alphas, split=args.split, device=args.device, solver_device=args.solver_device,
                             seed=args.seed, max_objects=args.max_objects, simulate_objects=args.simulate_objects,
                             fitters=not args.no_fitters, render_frames=args.render_frames,
-                            render_views=args.render_views, render_resolution=args.render_resolution)
+                            render_views=args.render_views, render_resolution=args.render_resolution,
+                            mean_prediction=not args.no_mean_prediction)
     from ...training.dataset import DatasetDir
 
     n = len(DatasetDir(args.data).ids(args.split))
