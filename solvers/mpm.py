@@ -47,6 +47,11 @@ P2G_SCATTER_MODES = ("atomic", "vector", "warp")
 """How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
 CUDA_GRAPH_SUBSTEPS = 16
 """Default of ``graph_substeps`` on CUDA: substeps per captured graph (launch overhead ~1 µs per graph)."""
+BUFFER_CACHE_BYTES = 1 << 30
+"""Device memory the particle buffers of different batch sizes may keep between runs (a diagnosis alternates
+batch sizes; re-allocating them also re-captures every CUDA graph)."""
+STATS_ITEMS_PER_LANE = 64
+"""Particles each lane of the per-frame reduction (bounds, speeds) visits, at least."""
 
 
 @dataclass(frozen=True)
@@ -264,6 +269,7 @@ class _Buffers:
     initial: Optional[dict] = None  # the initial particle state (base material), uploaded once
     parity: int = 0  # which of the two particle buffers is current (flips with every sort)
     commands: dict = field(default_factory=dict)  # _StepCommands per (parity, kernels, ...); cleared with the grid
+    frame_launches: dict = field(default_factory=dict)  # recorded per-frame launches (stats, sort) by their inputs
 
 
 @dataclass
@@ -277,6 +283,9 @@ class _StepCommands:
 _PARTICLE_FIELDS = (("x", "vec3"), ("v", "vec3"), ("C", "mat33"), ("F", "mat33"), ("rot", "quat"), ("plastic", "float"),
                     ("mass", "float"), ("vol", "float"), ("mu", "float"), ("lam", "float"), ("code", "int32"),
                     ("pid", "int32"))
+_BYTES_PER_PARTICLE = 3 * 140 + 16
+"""Device bytes per particle and environment: the fields above (140 B) in the current, spare and initial
+buffers, and the sort's keys and values."""
 
 
 # ------------------------------------------------------------------------------------------ simulation
@@ -299,7 +308,7 @@ class MPMSimulation(Simulation):
     def __init__(self, body: Body, scenario: Scenario, frame_times, device: str, settings: MPMSettings):
         super().__init__(body, scenario, frame_times, device)
         self.settings = settings
-        self._buffers: Optional[_Buffers] = None
+        self._buffer_sets: dict[int, _Buffers] = {}  # batch size -> device arrays (least recently used first)
         self._kc = None  # mpm_kernels_cuda, imported on first use
         self._profile: Optional[list] = None  # (section, start, end) while profile() runs
         self._run_tuning: Optional[_Tuning] = None  # the tuning of the run in progress
@@ -425,8 +434,21 @@ class MPMSimulation(Simulation):
 
     # ------------------------------------------------------------------ buffers
     def _buffers_for(self, envs: int) -> _Buffers:
-        if self._buffers is not None and self._buffers.envs == envs:
-            return self._buffers
+        """The device arrays for a batch of ``envs`` environments: reused from an earlier run of that batch size
+        (with their grid, launches and captured graphs) while the cached sets stay under
+        :data:`BUFFER_CACHE_BYTES`; the least recently used sets are freed first."""
+        cached = self._buffer_sets.pop(envs, None)
+        if cached is None:
+            cached = self._new_buffers(envs)
+        self._buffer_sets[envs] = cached  # most recently used last
+        budget = BUFFER_CACHE_BYTES
+        for size in list(self._buffer_sets)[::-1]:
+            budget -= size * self.particle_count * _BYTES_PER_PARTICLE
+            if budget < 0 and size != envs:
+                del self._buffer_sets[size]
+        return cached
+
+    def _new_buffers(self, envs: int) -> _Buffers:
         wp, dev = self._wp, self.device
         n = self.particle_count * envs
         m = max(len(self.tracked_rest), 1) * envs
@@ -436,21 +458,22 @@ class MPMSimulation(Simulation):
                  if self.settings.sort_particles else {})
         tracked = {"x": wp.zeros(m, dtype=wp.vec3, device=dev), "v": wp.zeros(m, dtype=wp.vec3, device=dev),
                    "held": wp.zeros(m, dtype=wp.int32, device=dev)}
-        # reduction lanes per environment: enough threads to fill a GPU, few enough to read back cheaply
-        lanes = int(min(16384 if str(dev).startswith("cuda") else 1024,
-                        max(self.particle_count, len(self.tracked_rest), 1)))
-        stats = {"lo": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
-                 "hi": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev),
-                 "stats": wp.zeros(envs * lanes, dtype=wp.vec3, device=dev)}
+        # reduction lanes per environment: enough threads to fill a GPU, few enough to read back cheaply (each
+        # lane reduces STATS_ITEMS_PER_LANE or more particles; the host finishes over lanes)
+        items = max(self.particle_count, len(self.tracked_rest), 1)
+        lanes = int(min(16384 if str(dev).startswith("cuda") else 1024, -(-items // STATS_ITEMS_PER_LANE)))
+        together = wp.zeros(3 * envs * lanes, dtype=wp.vec3, device=dev)  # read back in one copy per frame
+        n_stats = envs * lanes
+        stats = {"all": together, "lo": together[:n_stats], "hi": together[n_stats:2 * n_stats],
+                 "stats": together[2 * n_stats:]}
         env = {"dt": wp.zeros(envs, dtype=float, device=dev), "steps": wp.zeros(envs, dtype=wp.int32, device=dev),
                "origin": wp.zeros(envs, dtype=wp.vec3, device=dev), "yield": wp.zeros(envs, dtype=float, device=dev),
                "eta": wp.zeros(envs, dtype=float, device=dev), "acc": wp.zeros(envs, dtype=wp.vec3, device=dev),
                "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev)}
         sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
-        self._buffers = _Buffers(envs, particles, spare, tracked, sort_keys, sort_values, lanes, stats, env,
-                                 wp.zeros(envs, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev))
-        return self._buffers
+        return _Buffers(envs, particles, spare, tracked, sort_keys, sort_values, lanes, stats, env,
+                        wp.zeros(envs, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev))
 
     def _reset_particles(self, buf: _Buffers, terms_list: list) -> None:
         """Set the particle buffer to the initial state (device-to-device copy of a state uploaded once per batch
@@ -563,10 +586,15 @@ class MPMSimulation(Simulation):
             self._record_state(buf, scratch, states, 0)
         dt_log = np.zeros((E, F_count - 1))
         steps_log = np.zeros((E, F_count - 1), np.int64)
+        # tracked positions of every frame gather on the device (one read-back at the end, so the host can queue
+        # the next frame while the GPU still steps this one)
+        history = wp.empty(F_count * E * M_alloc, dtype=wp.vec3, device=dev) if M else None
 
         for f in range(1, F_count):
             frame_dt = float(times[f] - times[f - 1])
             lo, hi, vmax, cmax = self._frame_stats(buf, E, N, M, f - 1)
+            if f > 1:
+                self._check_lost(buf, N, f - 1, dt)
             # time step per environment
             dt = s.cfl * dx / (cmax + vmax + acc_norm * frame_dt + 1e-12)
             visc = eta > 0
@@ -607,22 +635,18 @@ class MPMSimulation(Simulation):
                     self._sort(buf, E, N)
                 self._step_frame(buf, E, N, M_alloc, done, done + chunk, has_ground, ground_z, progress)
                 done += chunk
-            lost = buf.lost.numpy()
-            if lost.any():
-                e = int(np.argmax(lost))
-                raise SimulationDiverged(
-                    f"MPM diverged at frame {f} (t = {times[f]:.4g} s): {int(lost[e])} of {N} particles have NaN/inf "
-                    f"positions or left the grid (it follows the material with a margin of {s.domain_margin_cells} "
-                    f"cells plus one frame of travel). Remedy: a smaller time step (settings max_dt or cfl; the "
-                    f"step was {dt[e]:.3g} s), a lower E, or a finer grid")
             if M:
-                out_positions[:, f] = T["x"].numpy().reshape(E, M_alloc, 3)[:, :M]
+                wp.copy(history, T["x"], dest_offset=f * E * M_alloc, count=E * M_alloc)
             if states is not None:
                 self._record_state(buf, scratch, states, f)
             if progress:
                 progress.step(1.0, f"MPM frame {f}/{F_count - 1}")
-        # last check: NaN in the final state
+        # last checks: NaN in the final state, particles lost in the last frame
         self._frame_stats(buf, E, N, M, F_count - 1)
+        if F_count > 1:
+            self._check_lost(buf, N, F_count - 1, dt)
+        if M:
+            out_positions[:, 1:] = history.numpy().reshape(F_count, E, M_alloc, 3)[1:, :, :M].transpose(1, 0, 2, 3)
         if not np.all(np.isfinite(out_positions)):
             raise SimulationDiverged("MPM diverged: tracked points have NaN/inf positions; use a smaller time step "
                                      "(settings max_dt or cfl) or a lower E")
@@ -650,6 +674,18 @@ class MPMSimulation(Simulation):
         return out
 
     # ------------------------------------------------------------------ pieces of a run
+    def _check_lost(self, buf: _Buffers, N: int, frame: int, dt: np.ndarray) -> None:
+        """Raise SimulationDiverged if particles were lost (NaN/inf or off the grid) while stepping to ``frame``
+        with the (E,) substeps ``dt`` (read after the next frame's statistics: no extra wait for the GPU)."""
+        lost = buf.lost.numpy()
+        if lost.any():
+            e = int(np.argmax(lost))
+            raise SimulationDiverged(
+                f"MPM diverged at frame {frame} (t = {self.frame_times[frame]:.4g} s): {int(lost[e])} of {N} particles "
+                f"have NaN/inf positions or left the grid (it follows the material with a margin of "
+                f"{self.settings.domain_margin_cells} cells plus one frame of travel). Remedy: a smaller time step "
+                f"(settings max_dt or cfl; the step was {dt[e]:.3g} s), a lower E, or a finer grid")
+
     def _choose_p2g(self, yield_stress: np.ndarray):
         """The elastic-only P2G when every deforming particle is purely elastic fixed-corotated and no
         environment has the plasticity effect, else the general one (same results for such runs); with the
@@ -683,14 +719,16 @@ class MPMSimulation(Simulation):
         wp, k = self._wp, self._k
         P, st = buf.particles, buf.stats
         start = self._mark()
-        wp.launch(k.frame_stats, dim=E * buf.lanes, device=self.device,
-                  inputs=[P["x"], P["v"], P["mass"], P["vol"], P["mu"], P["lam"], P["plastic"], P["code"], self._laws,
-                          buf.tracked["x"], N, M, buf.lanes],
-                  outputs=[st["lo"], st["hi"], st["stats"]])
+        self._frame_launch(buf, ("frame_stats", buf.parity), lambda: wp.launch(
+            k.frame_stats, dim=E * buf.lanes, device=self.device, record_cmd=True,
+            inputs=[P["x"], P["v"], P["mass"], P["vol"], P["mu"], P["lam"], P["plastic"], P["code"], self._laws,
+                    buf.tracked["x"], N, M, buf.lanes],
+            outputs=[st["lo"], st["hi"], st["stats"]]))
         self._record("frame_stats", start)
-        lo = st["lo"].numpy().reshape(E, buf.lanes, 3).min(1).astype(np.float64)
-        hi = st["hi"].numpy().reshape(E, buf.lanes, 3).max(1).astype(np.float64)
-        stats = st["stats"].numpy().reshape(E, buf.lanes, 3)
+        together = st["all"].numpy().reshape(3, E, buf.lanes, 3)
+        lo = together[0].min(1).astype(np.float64)
+        hi = together[1].max(1).astype(np.float64)
+        stats = together[2]
         bad = stats[:, :, 2].sum(1)
         if bad.any():
             e = int(np.argmax(bad))
@@ -711,16 +749,27 @@ class MPMSimulation(Simulation):
         dims = wp.vec3i(*buf.grid_dims)
         nodes = int(np.prod(buf.grid_dims))
         start = self._mark()
-        wp.launch(k.cell_keys, dim=n, device=self.device,
-                  inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
-                  outputs=[buf.sort_keys, buf.sort_values])
+        self._frame_launch(buf, ("cell_keys", buf.parity, buf.grid_dims), lambda: wp.launch(
+            k.cell_keys, dim=n, device=self.device, record_cmd=True,
+            inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
+            outputs=[buf.sort_keys, buf.sort_values]))
         wp.utils.radix_sort_pairs(buf.sort_keys, buf.sort_values, n)
         names = [name for name, _ in _PARTICLE_FIELDS]
-        wp.launch(k.gather_particles, dim=n, device=self.device,
-                  inputs=[buf.sort_values] + [P[a] for a in names] + [S[a] for a in names])
+        self._frame_launch(buf, ("gather_particles", buf.parity), lambda: wp.launch(
+            k.gather_particles, dim=n, device=self.device, record_cmd=True,
+            inputs=[buf.sort_values] + [P[a] for a in names] + [S[a] for a in names]))
         self._record("sort", start)
         buf.particles, buf.spare = S, P
         buf.parity ^= 1
+
+    @staticmethod
+    def _frame_launch(buf: _Buffers, key: tuple, record) -> None:
+        """Launch a per-frame kernel from its recorded command (``record()`` makes it once per ``key``: the
+        arrays and sizes it is bound to); a recorded launch skips the argument packing of ``wp.launch``."""
+        cmd = buf.frame_launches.get(key)
+        if cmd is None:
+            cmd = buf.frame_launches[key] = record()
+        cmd.launch()
 
     def _place_grid(self, buf: _Buffers, lo: np.ndarray, hi: np.ndarray, frame: int) -> None:
         """Size the grid and set each environment's origin around its material's (E, 3) bounds."""

@@ -119,6 +119,8 @@ AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
 STIFFNESS_CALIBRATION = 0.94
 """c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
+GPU_LANES_PER_ANCHOR = 32
+"""Threads (one warp) that gather an anchor's ~40-60 half-edges on a GPU (settings.lanes_per_anchor)."""
 
 
 # ------------------------------------------------------------------------------------- settings
@@ -140,6 +142,9 @@ class SpringMassSettings:
     max_substeps_per_frame: refuse (UserError) a run whose stability limit needs more substeps
         per frame interval than this (e.g. a huge ``material_damping`` η: dashpots are explicit).
     stiffness_calibration: c_E (see module docstring).
+    lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
+        1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`GPU_LANES_PER_ANCHOR` on a GPU,
+        1 on the CPU.
     """
 
     anchors: int = DEFAULT_ANCHORS
@@ -154,8 +159,15 @@ class SpringMassSettings:
     substeps: Optional[int] = None
     max_substeps_per_frame: int = 200_000
     stiffness_calibration: float = STIFFNESS_CALIBRATION
+    lanes_per_anchor: Optional[int] = None
 
     def __post_init__(self):
+        if self.lanes_per_anchor is not None:
+            lanes = self.lanes_per_anchor
+            if not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
+                raise UserError(f"spring-mass setting 'lanes_per_anchor' must be None or a whole number in 1..1024, "
+                                f"got {lanes!r}")
+            self.lanes_per_anchor = int(lanes)
         for name in ("anchors", "neighbours", "binding", "fill_per_anchor", "max_fill_points", "max_substeps_per_frame"):
             val = getattr(self, name)
             if not isinstance(val, (int, np.integer)) or val < 1:
@@ -620,18 +632,20 @@ class SpringMassSimulation(Simulation):
         # anchors stand for cells of material: they touch the ground half a fill spacing above it
         ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height) + self.contact_offset
 
-        def step_launches(a, b, dt):
-            """(kernel, inputs) of one substep from buffer a to buffer b."""
-            return [(K.spring_substep, [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash,
-                                        d_yield, self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos,
-                                        d_accel, d_lin, d_quad, d_mu, ground, has_ground, float(dt)])]
-
         use_graph = wp.get_device(dev).is_cuda
+        lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
+
+        def launch_substep(a, b, dt, record_cmd=False):
+            """Launch (or record) one substep from buffer a to buffer b."""
+            inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash, d_yield,
+                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad, d_mu,
+                      ground, has_ground, float(dt)]
+            return wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
+                                   record_cmd=record_cmd)
+
         cmds = []
         if not use_graph:
-            for a in (0, 1):
-                cmds += [wp.launch(kern, dim=(n_env, n), inputs=inp, device=dev, record_cmd=True)
-                         for kern, inp in step_launches(a, 1 - a, 1e-4)]
+            cmds = [launch_substep(a, 1 - a, 1e-4, record_cmd=True) for a in (0, 1)]
         graphs: dict = {}
 
         def output(frame: int):
@@ -668,9 +682,7 @@ class SpringMassSimulation(Simulation):
                 if key not in graphs:
                     with wp.ScopedCapture(device=dev) as cap:
                         for s in range(n_sub):
-                            a = s % 2
-                            for kern, inp in step_launches(a, 1 - a, dt):
-                                wp.launch(kern, dim=(n_env, n), inputs=inp, device=dev)
+                            launch_substep(s % 2, 1 - s % 2, dt)
                     graphs[key] = cap.graph
                 wp.capture_launch(graphs[key])
             else:

@@ -3,9 +3,10 @@
 Arrays are indexed ``[env, item]``: every simulated environment (one effect list of a
 batch) runs in the same launch.  Springs are stored as half-edges in CSR order
 (``start[i] .. start[i + 1]`` are the springs of anchor ``i``), so each thread *gathers*
-the forces on its own anchor: no atomics, one launch per substep.  Each spring has one
-half-edge at each end with its own copy of the rest length; both copies see identical
-inputs every substep, so plastic rest-length updates stay symmetric.
+the forces on its own anchor (a block of lanes per anchor on a GPU): no atomics, one launch
+per substep.  Each spring has one half-edge at each end with its own copy of the rest
+length; both copies see identical inputs every substep, so plastic rest-length updates
+stay symmetric.
 """
 
 from __future__ import annotations
@@ -40,6 +41,50 @@ def advance(xi: wp.vec3, vn: wp.vec3, dt: float, ground: float, has_ground: int,
     return xn, vn
 
 
+@wp.func
+def half_edge_force(e: int, h: int, xi: wp.vec3, vi: wp.vec3, x: wp.array2d(dtype=wp.vec3),
+                    v: wp.array2d(dtype=wp.vec3), rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
+                    dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
+                    nbr: wp.array(dtype=int)):
+    """Force (N) of half-edge ``h`` of environment ``e`` on its anchor at xi (m) moving at vi (m/s):
+    Hooke spring along the current direction plus the dashpot on the relative velocity along it;
+    past the yield strain the rest length (stored in ``rest[e, h]``) follows the spring."""
+    j = nbr[h]
+    d = x[e, j] - xi
+    l = wp.length(d)
+    f = wp.vec3(0.0, 0.0, 0.0)
+    if l > 1.0e-12:
+        n = d / l
+        L = rest[e, h]
+        ey = yield_strain[e, h]
+        if ey < BIG:
+            s = (l - L) / L
+            if s > ey:
+                L = l / (1.0 + ey)
+                rest[e, h] = L
+            elif s < -ey:
+                L = l / (1.0 - ey)
+                rest[e, h] = L
+        f = (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
+    return f
+
+
+@wp.func
+def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: float,
+                     x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
+                     accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
+                     quad_drag: wp.array(dtype=float), friction: wp.array(dtype=float),
+                     ground: float, has_ground: int, dt: float):
+    """Semi-implicit Euler update of anchor ``i`` (inverse mass ``im``, 1/kg) under the spring force ``f`` (N),
+    body acceleration, drags and ground contact; writes x_out[e, i], v_out[e, i]."""
+    vn = vi + dt * (accel[e] + im * f)
+    # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
+    vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+    xn, vf = advance(xi, vn, dt, ground, has_ground, friction[e])
+    x_out[e, i] = xn
+    v_out[e, i] = vf
+
+
 @wp.kernel
 def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
@@ -50,7 +95,11 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
                    quad_drag: wp.array(dtype=float), friction: wp.array(dtype=float),
                    ground: float, has_ground: int, dt: float):
-    """One semi-implicit Euler substep of anchor ``i`` in environment ``e``.
+    """One semi-implicit Euler substep of anchor ``i`` in environment ``e``, by a block of lanes
+    (``wp.launch_tiled``, dim (E, N), block_dim lanes: 1 on the CPU, 32 on a GPU).  Lane ``l`` sums the
+    half-edges start[i] + l, + block_dim, ...; a tile reduction adds the lanes' forces and lane 0
+    integrates.  On a GPU the spring loads of an anchor are so issued together instead of one after
+    another (one thread per anchor is latency-bound there).
 
     x, v: (E, N) m, m/s at the start of the substep; x_out, v_out: (E, N) at its end.
     rest: (E, H) current rest lengths m (plasticity updates them); kappa: (E, H) N/m;
@@ -59,38 +108,25 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
     friction: (E,) Coulomb μ at the ground plane z = ground (when has_ground != 0).
     """
-    e, i = wp.tid()
+    e, i, lane = wp.tid()
     im = inv_mass[i]
-    if im == 0.0:
-        x_out[e, i] = x_rest[i]
-        v_out[e, i] = wp.vec3(0.0, 0.0, 0.0)
+    if im == 0.0:  # the same for every lane of the block: the whole block leaves
+        if lane == 0:
+            x_out[e, i] = x_rest[i]
+            v_out[e, i] = wp.vec3(0.0, 0.0, 0.0)
         return
     xi = x[e, i]
     vi = v[e, i]
     f = wp.vec3(0.0, 0.0, 0.0)
-    for h in range(start[i], start[i + 1]):
-        j = nbr[h]
-        d = x[e, j] - xi
-        l = wp.length(d)
-        if l > 1.0e-12:
-            n = d / l
-            L = rest[e, h]
-            ey = yield_strain[e, h]
-            if ey < BIG:
-                s = (l - L) / L
-                if s > ey:
-                    L = l / (1.0 + ey)
-                    rest[e, h] = L
-                elif s < -ey:
-                    L = l / (1.0 - ey)
-                    rest[e, h] = L
-            f = f + (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
-    vn = vi + dt * (accel[e] + im * f)
-    # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
-    vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
-    xn, vf = advance(xi, vn, dt, ground, has_ground, friction[e])
-    x_out[e, i] = xn
-    v_out[e, i] = vf
+    h = start[i] + lane
+    stop = start[i + 1]
+    while h < stop:
+        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+        h += wp.block_dim()
+    total = wp.tile_sum(wp.tile(f, preserve_type=True))
+    if lane == 0:
+        integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, friction, ground,
+                         has_ground, dt)
 
 
 @wp.kernel

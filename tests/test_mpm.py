@@ -168,6 +168,29 @@ def test_run_batch_equals_separate_runs():
     assert batch[4].meta["substeps_total"] > batch[0].meta["substeps_total"]  # stiffer: smaller time step
 
 
+def test_alternating_batch_sizes_reuse_their_buffers_and_stay_bounded(monkeypatch):
+    """A diagnosis alternates batch sizes: each size keeps its device arrays (same objects, same results, bitwise
+    on the CPU) while they fit the cache budget; past it the least recently used sizes are freed."""
+    frames = np.linspace(0.0, 0.1, 4)
+    sim = mpm.prepare(cube(), JELLY, Scenario(gravity=[0, 0, -G], ground_height=0.0,
+                                              initial_velocity=[0.5, 0, 0]), frames)
+    drag = [fx.make("linear_drag", c=3.0)]
+    one = sim.run(drag).positions
+    pair = sim.run_batch([[], drag])[1].positions
+    buffers_of_one = sim._buffer_sets[1]
+    assert set(sim._buffer_sets) == {1, 2}
+    np.testing.assert_array_equal(sim.run(drag).positions, one)
+    assert sim._buffer_sets[1] is buffers_of_one
+    np.testing.assert_array_equal(sim.run_batch([[], drag])[1].positions, pair)
+    # a budget of about three single-environment sets: sizes 1 and 2 fill it, size 3 evicts the older ones
+    per_env = sim.particle_count * mpm._BYTES_PER_PARTICLE
+    monkeypatch.setattr(mpm, "BUFFER_CACHE_BYTES", 3 * per_env)
+    sim.run_batch([[], drag, []])
+    assert list(sim._buffer_sets) == [3]
+    sim.run(drag)
+    assert list(sim._buffer_sets) == [1]  # 3 + 1 sets exceed the budget: the older size goes
+
+
 def test_api_dispatch_and_simulate():
     frames = np.linspace(0.0, 0.05, 3)
     sim = api.prepare("mpm", cube(), JELLY, free(), frames)

@@ -252,6 +252,31 @@ def test_batch_equals_single_runs_and_ground_holds():
     assert states.solver == "spring_mass" and states.positions.shape == (7, len(body.tracked_points), 3)
 
 
+def test_lanes_per_anchor_give_the_one_lane_result(monkeypatch):
+    """The substep kernel with a block of lanes per anchor (tile-reduced, as on a GPU) gives the trajectories of
+    one lane per anchor (only the summation order differs: float32 round-off) with plasticity, a clamp, drag,
+    ground contact and friction; run on the CPU with 4 and 32 lanes (Warp's opt-in CPU thread blocks)."""
+    import warp
+
+    monkeypatch.setattr(warp.config, "enable_cpu_blocks", True)
+    body = box_body((0.2, 0.05, 0.05), (0.08, 0, 0.05), tracked=np.array([[0.18, 0, 0.05], [0.05, 0.02, 0.03]]))
+    sc = Scenario(pinned_box=[[-1, -1, -1], [0, 1, 2]], initial_velocity=[0.3, 0.0, -0.5])
+    t = np.linspace(0, 0.1, 6)
+    effs = [[fx.make("plasticity", yield_stress=3e3), fx.make("ground_friction", mu=0.4),
+             fx.make("quadratic_drag", k=0.2)], [fx.make("material_damping", eta=20.0)]]
+    runs = {}
+    for lanes in (1, 4, 32):
+        sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 60, "lanes_per_anchor": lanes})
+        runs[lanes] = [tr.positions.astype(np.float64) for tr in sim.run_batch(effs)]
+    moved = np.abs(runs[1][0][-1] - runs[1][0][0]).max()
+    assert moved > 5e-3  # the test would pass trivially on a body at rest
+    for lanes in (4, 32):
+        for a, b in zip(runs[lanes], runs[1]):
+            np.testing.assert_allclose(a, b, atol=2e-5 * max(moved, 1.0))
+    with pytest.raises(UserError, match="lanes_per_anchor"):
+        sm.SpringMassSettings(lanes_per_anchor=0)
+
+
 def test_explicit_parameters_match_the_material_mapping():
     """Running with (k, η) from stiffness_from_youngs_modulus reproduces the material-driven run; a 4× stiffer
     k vector gives 4× the spring constants."""

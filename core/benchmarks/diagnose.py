@@ -10,6 +10,8 @@ fastest adequate solver (spring-mass), ≤ 30 s on one H100 with MPM.
 
 from __future__ import annotations
 
+import argparse
+
 HELP = "time a full diagnosis (baseline + every effect fitted + one addition) of a 1 s, 100-frame, ~250-point measurement"
 
 
@@ -22,6 +24,8 @@ def add_arguments(p):
     p.add_argument("--effect", default="quadratic_drag:k=0.3", help="the hidden effect")
     p.add_argument("--runs", type=int, default=1, help="timed runs (median reported)")
     p.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE", help="solver setting of the diagnosis")
+    p.add_argument("--parallel", action=argparse.BooleanOptionalAction, default=None,
+                   help="candidate fits side by side (default: the diagnosis's own choice for the device)")
 
 
 def run(args) -> list[dict]:
@@ -42,12 +46,14 @@ def run(args) -> list[dict]:
     load_before = os.getloadavg()[0]
     for _ in range(max(1, args.runs)):
         t0 = time.perf_counter()
-        d = diagnose.diagnose(m, args.solver, max_additions=1, device=device, settings=settings)
+        d = diagnose.diagnose(m, args.solver, max_additions=1, device=device, settings=settings,
+                              parallel=args.parallel)
         times.append(time.perf_counter() - t0)
         sims.append(d.simulations)
         found.append(d.identified)
     expected = args.effect.split(":")[0]
-    case = (f"full diagnosis ({args.solver}{' ' + ','.join(args.setting) if args.setting else ''}, "
+    mode = {True: ", candidates side by side", False: ", candidates one after another", None: ""}[args.parallel]
+    case = (f"full diagnosis ({args.solver}{' ' + ','.join(args.setting) if args.setting else ''}{mode}, "
             f"{m.frame_count} instants / {m.duration:g} s, {m.point_count} points, hidden {args.effect} made by "
             f"{args.gen_solver}; baseline + every effect + one addition)")
     return [{"case": case, "device": device_description(device), "metric": "diagnosis_wall_s",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 from ._common import device as device_type
 from ._common import existing_file
 
@@ -89,6 +91,9 @@ def add_arguments(p):
     p.add_argument("--device", type=device_type, default="cpu", help="cpu (default), cuda or cuda:N")
     p.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE",
                    help="solver setting, e.g. anchors=256 (spring_mass) or cells_across=24 (mpm); repeatable")
+    p.add_argument("--parallel", action=argparse.BooleanOptionalAction, default=None,
+                   help="fit the candidate effects side by side with their simulations batched together "
+                        "(default: on a GPU with mpm/lbs, off on the CPU)")
     p.add_argument("--quiet", action="store_true", help="print only the result")
     add_measurement_arguments(p)
 
@@ -109,7 +114,7 @@ def run(args) -> int:
         result = diagnose.diagnose(m, args.solver, out_dir=args.out, effects_on=args.effects_on, add=args.add,
                                    max_additions=args.max_additions, device=device,
                                    settings=parse_settings(args.setting) or None, candidates=cands,
-                                   progress=progress, log=log)
+                                   parallel=args.parallel, progress=progress, log=log)
     print(result.summary())
     print(f"report: {args.out}/diagnosis.json, {args.out}/diagnosis.html")
     return 0

@@ -44,6 +44,7 @@ What it does (``shared/specs/measurement-format.md`` §3, ``shared/notes/diagnos
 from __future__ import annotations
 
 import dataclasses
+import contextvars
 import math
 import time
 from dataclasses import dataclass, field
@@ -55,6 +56,7 @@ from ...solvers import effects as fx
 from ..errors import SimulationDiverged, UserError
 from ..progress import Progress, silent
 from . import significance as sig
+from .batching import BatchGate
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
                   grid_search, levenberg_marquardt, uncertainty)
@@ -77,10 +79,14 @@ every environment with the smallest stable substep among them, and its time-inte
 (≈ g·t·Δt/2 in free flight, millimetres) then changes with the company a parameter set keeps, which
 breaks finite differences and comparisons.  Their environments run one per launch (on the CPU this
 costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
-DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}, "mpm": {"cells_across": 12}}
+DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}, "mpm": {"cells_across": 12, "viscous_cfl": 0.2}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
 spring-mass anchors, 32 MPM cells across), because a diagnosis runs hundreds of simulations
-(MPM: ~8·C³ particles × ~200·C substeps per simulated second for C cells across a 0.2 m jelly)."""
+(MPM: ~8·C³ particles × ~200·C substeps per simulated second for C cells across a 0.2 m jelly).
+MPM's viscous time-step factor is 0.2 instead of the solver's 0.1: the material-damping candidates,
+whose explicit step is ∝ 1/η, then take half the substeps.  Measured (8 cells across, η = 700 and
+3000 Pa·s, a thrown 0.2 m cube): stable up to 0.3, 1–1.5 mm from the 0.1 result at 0.2, unstable from
+0.45 — far below the coarse grid's own error; the half-step check halves it again."""
 MAX_DAMPING_RATIO = 0.3
 """Largest Kelvin–Voigt viscosity tried, as a damping ratio of the solid's first axial mode (ω ≈ π c / L).
 Explicit solvers need a time step ∝ 1/η, so the cost of a simulation grows with η; "moderate"
@@ -323,11 +329,17 @@ def _fmt_params(effect: Optional[fx.Effect]) -> str:
 
 
 # --------------------------------------------------------------------------- the problem
+_EVALUATIONS: contextvars.ContextVar = contextvars.ContextVar("unipixie_diagnosis_evaluations", default=None)
+"""The simulation counter ([count]) of the fit running in this context (side-by-side fits inherit it)."""
+
+
 class _Problem:
     """The measurement, the prepared simulation and the residual evaluation shared by all fits."""
 
-    def __init__(self, measurement, sim, fixed: list, progress: Progress, max_batch: int):
+    def __init__(self, measurement, sim, fixed: list, progress: Progress, max_batch: int, parallel: bool = True):
         self.m = measurement
+        self.parallel = bool(parallel)
+        self.gate = BatchGate(self._run_now)
         self.sim = sim
         self.fixed = list(fixed)
         self.progress = progress
@@ -376,8 +388,25 @@ class _Problem:
         return out
 
     def run(self, effect_lists: list, sim=None) -> list:
-        """Trajectories (T, N, 3) positions for several effect lists, batched; a diverged run gives NaN."""
+        """Trajectories (T, N, 3) positions for several effect lists, batched; a diverged run gives NaN.
+
+        From a fit running in :attr:`gate`'s jobs the request joins the other fits' in a shared batch."""
         sim = sim or self.sim
+        counter = _EVALUATIONS.get()
+        if counter is not None:
+            counter[0] += len(effect_lists)
+        if self.gate.in_job():
+            return self.gate.request(effect_lists, sim)
+        return self._run_now(effect_lists, sim)
+
+    def side_by_side(self, jobs: Sequence[Callable[[], object]]) -> list:
+        """Run ``jobs`` (fits) side by side with their simulations batched together (:mod:`.batching`), or one
+        after another when :attr:`parallel` is off; returns their results in order."""
+        if not self.parallel or len(jobs) < 2:
+            return [job() for job in jobs]
+        return self.gate.map(jobs)
+
+    def _run_now(self, effect_lists: list, sim) -> list:
         out: list = []
         for i in range(0, len(effect_lists), self.max_batch):
             chunk = effect_lists[i:i + self.max_batch]
@@ -422,7 +451,8 @@ class _Problem:
         pseudo-residual per parameter with a prior (see :class:`~.fit.FreeParam`).
 
         ``separate`` runs each parameter set in its own launch (for sets whose stable time steps
-        differ a lot, e.g. a start grid over decades of damping)."""
+        differ a lot, e.g. a start grid over decades of damping) — unless fits run side by side (on a GPU,
+        where a batch costs what its slowest environment costs, not the sum)."""
         priors = [(i, p) for i, p in enumerate(param.params) if p.prior_width > 0]
 
         def with_priors(r, u):
@@ -433,7 +463,7 @@ class _Problem:
             for u in us:
                 scale, effs = param.realise(u)
                 lists.append(self.model_effects(scale, effs, param.fixed))
-            if separate:
+            if separate and not self.parallel:
                 pos = [self.run([one], sim)[0] for one in lists]
             else:
                 pos = self.run(lists, sim)
@@ -625,7 +655,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
-             predictive_window: bool = True,
+             predictive_window: bool = True, parallel: Optional[bool] = None,
              progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
@@ -635,7 +665,13 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     the best significant effect is added each round.  max_additions: rounds that add an effect
     (0: rank only).  candidates: effect names to try (default: the whole registry).
     settings: solver settings (dict or the solver's settings object; default :data:`DEFAULT_SETTINGS`).
-    max_batch: parameter sets per ``run_batch`` launch (default 16; 1 for :data:`UNBATCHED_SOLVERS`).  out_dir: write
+    max_batch: parameter sets per ``run_batch`` launch (default 32; 1 for :data:`UNBATCHED_SOLVERS`).
+    parallel: fit the candidates (and the held-out refits) side by side, their simulations joined into shared
+    batches (:mod:`.batching`).  ``None``: on a GPU with a solver that batches (a batch of a few environments
+    costs about what one does there), off on the CPU (where a batch costs the sum of its environments).
+    With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
+    round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
+    differently.  out_dir: write
     ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
     Returns a :class:`Diagnosis`.
     """
@@ -675,8 +711,10 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         fx.check_supported([e], solver)
     names = [n for n in names if solver in fx.get(n).solvers]
     if max_batch is None:
-        max_batch = 1 if solver in UNBATCHED_SOLVERS else 16
-    P = _Problem(measurement, sim, effects_on, progress, max_batch)
+        max_batch = 1 if solver in UNBATCHED_SOLVERS else 32
+    if parallel is None:
+        parallel = solver not in UNBATCHED_SOLVERS and not str(getattr(sim, "device", device)).startswith("cpu")
+    P = _Problem(measurement, sim, effects_on, progress, max_batch, parallel=parallel)
     P.sigma = sigma
     sc = _problem_scales(measurement, material)
     # progress total is a rough count of simulations
@@ -726,29 +764,39 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     plans = {n: _plan(n, sc, material.mean_E()) for n in names}
     not_applicable = _not_applicable(names, measurement, sigma)
     round_no = 0
+    half_sim = None  # the simulation at half the time step, prepared when first needed
     while True:
         round_no += 1
         say(f"{2 + round_no}. round {round_no}: fitting {len(names) - len(not_applicable)} candidate effects "
             f"against {'the refitted base' if not ref.effects else ' + '.join(e.name for e in ref.effects)} "
             f"(RMSE {1e3 * math.sqrt(ref.sse / P.n_obs):.2f} mm)")
-        cands: list[CandidateResult] = []
-        for name in names:
-            if name in not_applicable:
-                continue
-            if name in [e.name for e in ref.effects] and name != "stiffness_region":
-                continue  # already added: its parameters are refitted with every later candidate
-            progress.set_status(f"round {round_no}: fitting {name}")
-            t0 = P.evaluations
-            w0 = time.perf_counter()
-            if name == "stiffness_region":
-                c = _fit_region(P, ref, sc, material, plans, region_clusters, lm_iterations, sigma, progress)
-            else:
-                c = _fit_candidate(P, ref, name, sc, material, plans, lm_iterations, progress)
-            if c is None:
-                continue
-            c.evaluations = P.evaluations - t0
-            c.seconds = time.perf_counter() - w0
-            cands.append(c)
+        todo = [name for name in names if name not in not_applicable
+                # already added: its parameters are refitted with every later candidate
+                and (name not in [e.name for e in ref.effects] or name == "stiffness_region")]
+
+        def fit_job(name: str, ref: _Reference = ref) -> Callable[[], Optional[CandidateResult]]:
+            def job() -> Optional[CandidateResult]:
+                if not P.parallel:
+                    progress.set_status(f"round {round_no}: fitting {name}")
+                counter = [0]  # simulations of this fit (its own side-by-side fits included)
+                token = _EVALUATIONS.set(counter)
+                w0 = time.perf_counter()
+                try:
+                    if name == "stiffness_region":
+                        c = _fit_region(P, ref, sc, material, plans, region_clusters, lm_iterations, sigma, progress)
+                    else:
+                        c = _fit_candidate(P, ref, name, sc, material, plans, lm_iterations, progress)
+                finally:
+                    _EVALUATIONS.reset(token)
+                if c is not None:
+                    c.evaluations = counter[0]
+                    c.seconds = time.perf_counter() - w0
+                return c
+            return job
+
+        if P.parallel:
+            progress.set_status(f"round {round_no}: fitting {len(todo)} candidate effects side by side")
+        cands: list[CandidateResult] = [c for c in P.side_by_side([fit_job(n) for n in todo]) if c is not None]
         # significance ---------------------------------------------------------------------------
         tests = sum(c.tests for c in cands)
         if P.window is not None and cands:  # the spec's rmse / explained are over all observed samples
@@ -775,23 +823,42 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                 c.uncertainty = {p.label: _f(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
         cands.sort(key=lambda c: -c.score)
         # held-out window and time-step checks on the leading candidates -------------------------------
-        checked = 0
-        holdout_cache: dict = {}
-        for c in cands:
-            if not c.significant or checked >= 3:
-                continue
-            checked += 1
-            if holdout:
-                progress.set_status(f"round {round_no}: held-out check of {c.name}")
-                c.holdout = _holdout_check(P, ref, c, sigma, progress, holdout_cache)
-                if c.holdout.get("ok") is False:
-                    c.significant = False
-                    c.reasons.append(c.holdout["verdict"])
+        leading = [c for c in cands if c.significant][:3]
+        holdout_jobs, holdout_finish = (_holdout_jobs(P, ref, leading, sigma, progress) if holdout and leading
+                                        else ([], None))
+        # side by side, the half-step check of the leading candidate runs with the held-out refits (wasted only
+        # when the held-out check rejects that candidate; it is then run again for the new leader below)
+        dt_done: dict = {}
+        ahead = leading[0] if P.parallel and leading and dt_check and leading[0].name in DAMPING_LIKE else None
+        dt_jobs, dt_finish = [], None
+        if ahead is not None:
+            if half_sim is None:
+                half_sim = _half_step_sim(P, settings, measurement, material, body, frame_times, device)
+            dt_jobs, dt_finish = _half_step_jobs(P, ref, ahead, sigma, half_sim, lm_iterations, progress)
+        if holdout_jobs or dt_jobs:
+            progress.set_status(f"round {round_no}: held-out check of {', '.join(c.name for c in leading)}"
+                                + (f"; {ahead.name} at half the time step" if ahead is not None else ""))
+            results = P.side_by_side(holdout_jobs + dt_jobs)
+            if holdout_finish is not None:
+                for c, check in zip(leading, holdout_finish(results[:len(holdout_jobs)])):
+                    c.holdout = check
+                    if c.holdout.get("ok") is False:
+                        c.significant = False
+                        c.reasons.append(c.holdout["verdict"])
+            if ahead is not None:
+                dt_done[ahead.name] = dt_finish(results[len(holdout_jobs):])
+        elif holdout_finish is not None:  # too few samples for a held-out window
+            for c, check in zip(leading, holdout_finish([])):
+                c.holdout = check
         top = next((c for c in cands if c.significant), None)
         if dt_check and top is not None and top.name in DAMPING_LIKE:
-            progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
-            top.dt_check = _half_step_check(P, ref, top, sigma, device, settings, measurement, material, body,
-                                            frame_times, lm_iterations, progress)
+            if top.name not in dt_done:
+                progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
+                if half_sim is None:
+                    half_sim = _half_step_sim(P, settings, measurement, material, body, frame_times, device)
+                jobs, finish = _half_step_jobs(P, ref, top, sigma, half_sim, lm_iterations, progress)
+                dt_done[top.name] = finish(P.side_by_side(jobs))
+            top.dt_check = dt_done[top.name]
             if top.dt_check.get("ok") is False:
                 top.significant = False
                 top.reasons.append(top.dt_check["verdict"])
@@ -902,8 +969,9 @@ def _fit_base(P: _Problem, param: Parametrisation, lm_iterations: int, progress:
         starts.append(np.asarray(start, dtype=np.float64))
     best, costs, res = grid_search(deformation, starts)
     lo, hi = param.bounds()
+    # alone on the device: each LM batch is small, so the next Jacobian is evaluated with the trials (lookahead)
     dfit = levenberg_marquardt(deformation, starts[best], lo, hi, param.steps(), r0=res[best],
-                               max_iter=lm_iterations, progress=progress)
+                               max_iter=lm_iterations, progress=progress, lookahead=P.parallel)
     cands = [np.array([0.0]), np.asarray(dfit.u)] + ([np.asarray(start, dtype=np.float64)] if start is not None else [])
     full = []
     for u in cands:
@@ -914,7 +982,7 @@ def _fit_base(P: _Problem, param: Parametrisation, lm_iterations: int, progress:
     hi2 = np.minimum(hi, math.log(4.0))
     u0 = np.clip(cands[k], lo2, hi2)
     bf = levenberg_marquardt(fn, u0, lo2, hi2, param.steps(), r0=full[k] if np.allclose(u0, cands[k]) else None,
-                             max_iter=lm_iterations, progress=progress)
+                             max_iter=lm_iterations, progress=progress, lookahead=P.parallel)
     return bf, bf.residual
 
 
@@ -1131,16 +1199,19 @@ def _fit_region(P: _Problem, ref: _Reference, sc: _Scales, material, plans: dict
         log_f = float(np.clip(coef[1], math.log(REGION_FACTOR_BOUNDS[0]), math.log(REGION_FACTOR_BOUNDS[1])))
         scored.append((predicted, i, math.exp(log_f) if abs(log_f) > 1e-3 else probe))
     scored.sort()
-    results = []
-    for best, i, f0 in scored[:2]:
-        label, region, members = regions[i]
-        template = fx.make("stiffness_region", factor=f0, region=region)
-        param = _param_for(ref, [template], plans)
-        ufn = P.residuals(param)
-        lo, hi = param.bounds()
-        fit = levenberg_marquardt(ufn, param.internal(), lo, hi, param.steps(), max_iter=lm_iterations,
-                                  progress=progress)
-        results.append((fit, param, label, region, members))
+
+    def region_fit(i: int, f0: float) -> Callable[[], tuple]:
+        def job() -> tuple:
+            label, region, members = regions[i]
+            template = fx.make("stiffness_region", factor=f0, region=region)
+            param = _param_for(ref, [template], plans)
+            lo, hi = param.bounds()
+            fit = levenberg_marquardt(P.residuals(param), param.internal(), lo, hi, param.steps(),
+                                      max_iter=lm_iterations, progress=progress)
+            return fit, param, label, region, members
+        return job
+
+    results = P.side_by_side([region_fit(i, f0) for _, i, f0 in scored[:2]])
     fit, param, label, region, members = min(results, key=lambda x: P.sse(x[0].residual))
     if P.sse(fit.residual) > ref.sse:  # never report worse than the reference itself: factor 1
         u = param.internal()
@@ -1176,11 +1247,11 @@ def _window_residuals(fn: Callable[[list], list], keep: np.ndarray, store: dict)
     return w
 
 
-def _holdout_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: float, progress: Progress,
-                   cache: dict) -> dict:
-    """Refit reference and candidate on the early frames; compare their errors on the later frames.
-
-    cache: holds the reference's held-out error for the round (computed once)."""
+def _holdout_jobs(P: _Problem, ref: _Reference, cands: Sequence[CandidateResult], sigma: float,
+                  progress: Progress) -> tuple[list, Callable[[list], list]]:
+    """Held-out checks of ``cands``: refit each and the reference on the early frames and compare their errors
+    on the later frames.  Returns (jobs, finish): the refits, and the function that turns their results into
+    one check (dict) per candidate."""
     t = P.m.times - P.m.times[0]
     t_end = t[P.window][-1] if P.window is not None else t[-1]
     split = sig.HOLDOUT_FRACTION * t_end
@@ -1190,42 +1261,46 @@ def _holdout_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: floa
     test = ~train
     n_test = int(test.sum() // 3)
     if n_test < 10 or int(train.sum() // 3) < 10:
-        return {"ok": None, "verdict": "too few samples for a held-out window", "split_time": float(split)}
-    out = {"split_time": float(split + P.m.times[0])}
-    sse_test = {}
-    for key, param, u0 in (("reference", _param_for(ref, [], {}), None), ("candidate", c.parametrisation, c.fit.u)):
-        if key == "reference" and "reference" in cache:
-            sse_test[key] = cache["reference"]
-            continue
-        if u0 is None:
-            u0 = param.internal()
-        store: dict = {}
-        fn = _window_residuals(P.residuals(param), train, store)
-        lo, hi = param.bounds()
-        fit = levenberg_marquardt(fn, u0, lo, hi, param.steps(), max_iter=3, progress=progress)
-        full = store.get(np.asarray(fit.u).tobytes())
-        if full is None:
-            full = P.residuals(param)([fit.u])[0]
-        sse_test[key] = float(np.sum(full[: P.size][test] ** 2))
-        if key == "reference":
-            cache["reference"] = sse_test[key]
-    out.update({"sse_reference": sse_test["reference"], "sse_candidate": sse_test["candidate"],
-                "rmse_reference": math.sqrt(sse_test["reference"] / n_test),
-                "rmse_candidate": math.sqrt(sse_test["candidate"] / n_test)})
-    # worse on the held-out frames by more than the noise can explain → the fit does not generalise
-    margin = 3.0 * math.sqrt(2.0 * 3 * n_test) * sigma * sigma
-    ok = sse_test["candidate"] <= sse_test["reference"] + margin
-    out["ok"] = bool(ok)
-    out["verdict"] = ("predicts the held-out frames at least as well" if ok else
-                      "fitted on the early frames it predicts the held-out later frames worse than the base model")
-    return out
+        return [], lambda results: [{"ok": None, "verdict": "too few samples for a held-out window",
+                                     "split_time": float(split)} for _ in cands]
+
+    def refit(param: Parametrisation, u0) -> Callable[[], float]:
+        def job() -> float:
+            store: dict = {}
+            fn = _window_residuals(P.residuals(param), train, store)
+            lo, hi = param.bounds()
+            fit = levenberg_marquardt(fn, param.internal() if u0 is None else u0, lo, hi, param.steps(), max_iter=3,
+                                      progress=progress)
+            full = store.get(np.asarray(fit.u).tobytes())
+            if full is None:
+                full = P.residuals(param)([fit.u])[0]
+            return float(np.sum(full[: P.size][test] ** 2))
+        return job
+
+    def finish(results: list) -> list:
+        sse_reference, *sse_candidates = results
+        # worse on the held-out frames by more than the noise can explain → the fit does not generalise
+        margin = 3.0 * math.sqrt(2.0 * 3 * n_test) * sigma * sigma
+        out = []
+        for sse_candidate in sse_candidates:
+            ok = sse_candidate <= sse_reference + margin
+            out.append({"split_time": float(split + P.m.times[0]), "sse_reference": sse_reference,
+                        "sse_candidate": sse_candidate, "rmse_reference": math.sqrt(sse_reference / n_test),
+                        "rmse_candidate": math.sqrt(sse_candidate / n_test), "ok": bool(ok),
+                        "verdict": ("predicts the held-out frames at least as well" if ok else
+                                    "fitted on the early frames it predicts the held-out later frames worse than "
+                                    "the base model")})
+        return out
+
+    return [refit(_param_for(ref, [], {}), None)] + [refit(c.parametrisation, c.fit.u) for c in cands], finish
 
 
 def half_step_settings(sim, settings):
     """Solver settings with half the time step, or ``None`` when the solver exposes no time-step knob.
 
-    Looks for a settings field ``dt`` / ``substep_dt`` / ``time_step`` (halved), else
-    ``cfl`` / ``safety`` / ``courant`` (halved), else ``substeps`` (doubled).
+    Looks for a settings field ``dt`` / ``substep_dt`` / ``time_step`` (halved), else the Courant-like
+    factors ``cfl`` / ``viscous_cfl`` / ``safety`` / ``courant`` (all present halved), else ``substeps``
+    (doubled).
     """
     s = getattr(sim, "settings", None)
     if s is None or not dataclasses.is_dataclass(s):
@@ -1234,44 +1309,52 @@ def half_step_settings(sim, settings):
     for key in ("dt", "substep_dt", "time_step", "max_dt"):
         if key in names and getattr(s, key) is not None:
             return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
-    for key in ("cfl", "safety", "courant"):
-        if key in names and getattr(s, key) is not None:
-            return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
+    courant = {key: getattr(s, key) * 0.5 for key in ("cfl", "viscous_cfl", "safety", "courant")
+               if key in names and getattr(s, key) is not None}
+    if courant:  # every limit of the step at once (MPM: the wave-speed and the viscous limit)
+        return dataclasses.replace(s, **courant)
     if "substeps" in names and getattr(s, "substeps") is not None:
         return dataclasses.replace(s, substeps=int(getattr(s, "substeps")) * 2)
     return None
 
 
-def _half_step_check(P: _Problem, ref: _Reference, c: CandidateResult, sigma: float, device: str, settings,
-                     measurement, material, body, frame_times, lm_iterations: int, progress: Progress) -> dict:
+def _half_step_sim(P: _Problem, settings, measurement, material, body, frame_times, device: str):
+    """The diagnosis's simulation prepared again at half the time step, or ``None`` (no time-step setting)."""
     from ...solvers import api
 
     half = half_step_settings(P.sim, settings)
     if half is None:
-        return {"ok": None, "verdict": "the solver exposes no time-step setting; not re-checked"}
-    sim2 = api.prepare(P.sim.solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
+        return None
+    return api.prepare(P.sim.solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
                        device=device, settings=half, progress=None)
-    out = {}
-    sses = {}
-    for key, param, u0 in (("reference", _param_for(ref, [], {}), None), ("candidate", c.parametrisation, c.fit.u)):
-        if u0 is None:
-            u0 = param.internal()
-        fn = P.residuals(param, sim=sim2)
-        lo, hi = param.bounds()
-        fit = levenberg_marquardt(fn, u0, lo, hi, param.steps(), max_iter=max(3, lm_iterations // 2),
-                                  progress=progress)
-        sses[key] = P.sse(fit.residual)
-        if key == "candidate":
-            _, effs = param.realise(fit.u)
-            out["params_half_step"] = effs[-1].params_dict()
-    lr = sig.likelihood_ratio(sses["reference"], sses["candidate"], sigma)
-    share = sig.share_of_excess(sses["reference"], sses["candidate"], P.n_obs, sigma)
-    ok = lr >= c.threshold and share >= sig.MIN_SHARE
-    out.update({"params": c.effect.params_dict(), "likelihood_ratio_half_step": lr, "share_half_step": share,
+
+
+def _half_step_jobs(P: _Problem, ref: _Reference, c: CandidateResult, sigma: float, sim2, lm_iterations: int,
+                    progress: Progress) -> tuple[list, Callable[[list], dict]]:
+    """Re-check candidate ``c`` with the simulation ``sim2`` at half the time step: (jobs, finish) — the refits of
+    the reference and of the candidate, and the function that turns their results into the check's verdict."""
+    if sim2 is None:
+        return [], lambda results: {"ok": None, "verdict": "the solver exposes no time-step setting; not re-checked"}
+
+    def refit(param: Parametrisation, u0) -> Callable[[], FitResult]:
+        def job() -> FitResult:
+            lo, hi = param.bounds()
+            return levenberg_marquardt(P.residuals(param, sim=sim2), param.internal() if u0 is None else u0, lo, hi,
+                                       param.steps(), max_iter=max(3, lm_iterations // 2), progress=progress)
+        return job
+
+    def finish(fits: list) -> dict:
+        sses = {"reference": P.sse(fits[0].residual), "candidate": P.sse(fits[1].residual)}
+        lr = sig.likelihood_ratio(sses["reference"], sses["candidate"], sigma)
+        share = sig.share_of_excess(sses["reference"], sses["candidate"], P.n_obs, sigma)
+        ok = lr >= c.threshold and share >= sig.MIN_SHARE
+        return {"params_half_step": c.parametrisation.realise(fits[1].u)[1][-1].params_dict(),
+                "params": c.effect.params_dict(), "likelihood_ratio_half_step": lr, "share_half_step": share,
                 "ok": bool(ok),
                 "verdict": ("the effect is still needed at half the time step" if ok else
-                            "at half the time step the improvement is no longer significant: numerical dissipation")})
-    return out
+                            "at half the time step the improvement is no longer significant: numerical dissipation")}
+
+    return [refit(_param_for(ref, [], {}), None), refit(c.parametrisation, c.fit.u)], finish
 
 
 def _base_material_check(P: _Problem, ref: _Reference, material, sigma: float, lm_iterations: int,
