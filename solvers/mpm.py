@@ -469,7 +469,8 @@ class MPMSimulation(Simulation):
         env = {"dt": wp.zeros(envs, dtype=float, device=dev), "steps": wp.zeros(envs, dtype=wp.int32, device=dev),
                "origin": wp.zeros(envs, dtype=wp.vec3, device=dev), "yield": wp.zeros(envs, dtype=float, device=dev),
                "eta": wp.zeros(envs, dtype=float, device=dev), "acc": wp.zeros(envs, dtype=wp.vec3, device=dev),
-               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev)}
+               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev),
+               "kick": wp.zeros(envs, dtype=float, device=dev)}
         sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         return _Buffers(envs, particles, spare, tracked, sort_keys, sort_values, lanes, stats, env,
@@ -589,6 +590,7 @@ class MPMSimulation(Simulation):
         # tracked positions of every frame gather on the device (one read-back at the end, so the host can queue
         # the next frame while the GPU still steps this one)
         history = wp.empty(F_count * E * M_alloc, dtype=wp.vec3, device=dev) if M else None
+        dt_staggered = np.zeros(E)  # (E,) the substep the stored velocities lag half of (leapfrog, see _kick)
 
         for f in range(1, F_count):
             frame_dt = float(times[f] - times[f - 1])
@@ -611,6 +613,8 @@ class MPMSimulation(Simulation):
                     "blowing up or the material is very stiff; lower E, raise max_substeps_per_frame, or use a "
                     "coarser grid (larger dx)")
             dt = frame_dt / steps
+            self._kick(buf, E, N, M_alloc, 0.5 * (dt_staggered - dt))
+            dt_staggered = dt
             dt_log[:, f - 1] = dt
             steps_log[:, f - 1] = steps
             Env["dt"].assign(dt.astype(np.float32))
@@ -674,6 +678,18 @@ class MPMSimulation(Simulation):
         return out
 
     # ------------------------------------------------------------------ pieces of a run
+    def _kick(self, buf: _Buffers, E: int, N: int, M_alloc: int, tau: np.ndarray) -> None:
+        """v += τ_e (gravity + extra acceleration) for the free particles and tracked points of each environment
+        ((E,) τ in s; nothing when all are 0): keeps the velocities half a substep behind the positions for the
+        body forces (``mpm_kernels.velocity_kick``)."""
+        if not np.any(tau):
+            return
+        buf.env["kick"].assign(tau.astype(np.float32))
+        P, T = buf.particles, buf.tracked
+        self._wp.launch(self._k.velocity_kick, dim=E * N + E * M_alloc, device=self.device,
+                        inputs=[P["v"], P["code"], T["v"], T["held"], buf.env["acc"], buf.env["kick"], N, M_alloc,
+                                E * N])
+
     def _check_lost(self, buf: _Buffers, N: int, frame: int, dt: np.ndarray) -> None:
         """Raise SimulationDiverged if particles were lost (NaN/inf or off the grid) while stepping to ``frame``
         with the (E,) substeps ``dt`` (read after the next frame's statistics: no extra wait for the GPU)."""

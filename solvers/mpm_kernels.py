@@ -593,6 +593,26 @@ def advance_step(step_base: wp.array(dtype=wp.int32), count: int):
 
 # ------------------------------------------------------------------------------ per-frame kernels
 @wp.kernel
+def velocity_kick(v: wp.array(dtype=wp.vec3), code: wp.array(dtype=wp.int32), tracked_v: wp.array(dtype=wp.vec3),
+                  tracked_held: wp.array(dtype=wp.int32), env_acc: wp.array(dtype=wp.vec3),
+                  env_tau: wp.array(dtype=float), n_per_env: int, m_per_env: int, n_total: int):
+    """Leapfrog bookkeeping for the body forces: v += τ_e a_e for every free particle (threads < n_total) and
+    tracked point (the rest) of environment e; a_e: (E,) m/s² gravity + extra acceleration, τ_e: (E,) s.
+    With τ = −Δt/2 before the first substep and (Δt − Δt')/2 where the substep changes, the stored velocities
+    stay half a substep behind the positions, so a free fall is exact instead of falling g t Δt/2 too far."""
+    tid = wp.tid()
+    if tid < n_total:
+        env = tid / n_per_env
+        if code[tid] < HELD_FLAG:
+            v[tid] = v[tid] + env_tau[env] * env_acc[env]
+    else:
+        k = tid - n_total
+        env = k / m_per_env
+        if tracked_held[k] == 0:
+            tracked_v[k] = tracked_v[k] + env_tau[env] * env_acc[env]
+
+
+@wp.kernel
 def frame_stats(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
                 vol: wp.array(dtype=float), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
                 plastic: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),

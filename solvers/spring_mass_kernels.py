@@ -130,6 +130,30 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
 
 
 @wp.kernel
+def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                  rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
+                  dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
+                  start: wp.array(dtype=int), nbr: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
+                  accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
+                  quad_drag: wp.array(dtype=float), tau: float):
+    """Velocity kick v += τ a(x, v) of anchor ``i`` in environment ``e`` (positions unchanged), with the forces of
+    :func:`spring_substep` (drags implicit): the leapfrog start (τ = −Δt/2: the velocities become those half a
+    substep earlier) and its correction when the substep changes from Δt to Δt' (τ = (Δt − Δt')/2).  Same arrays
+    and units as :func:`spring_substep`; τ in s (may be negative)."""
+    e, i = wp.tid()
+    im = inv_mass[i]
+    if im == 0.0:
+        return
+    xi = x[e, i]
+    vi = v[e, i]
+    f = wp.vec3(0.0, 0.0, 0.0)
+    for h in range(start[i], start[i + 1]):
+        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+    vn = vi + tau * (accel[e] + im * f)
+    v[e, i] = vn / (1.0 + tau * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+
+
+@wp.kernel
 def anchor_rotations(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3),
                      start: wp.array(dtype=int), nbr: wp.array(dtype=int),
                      gram_inv: wp.array(dtype=wp.mat33), rot: wp.array2d(dtype=wp.mat33)):

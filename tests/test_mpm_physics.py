@@ -57,10 +57,9 @@ def period_from_crossings(t, signal):
 
 # --------------------------------------------------------------------------- 1. free fall
 def test_free_fall_centre_of_mass_follows_parabola():
-    """z(t) = z0 − g t²/2 within 1 % of the fall distance for t ≥ 0.05 s (no ground within reach).
-
-    Explicit (symplectic Euler) stepping lags by g·t·dt/2; before 0.05 s that first-order term is
-    the bound instead.
+    """z(t) = z0 − g t²/2 within 1 % of the fall distance for t ≥ 0.05 s (no ground within reach) — in fact
+    within 0.1 mm at every frame: the stored velocities lag the positions by half a substep for the body forces
+    (leapfrog), which makes a free fall exact; plain symplectic Euler would fall g·t·dt/2 too far (~1 mm here).
     """
     frames = np.linspace(0.0, 0.3, 16)
     sim = prepare(block((4, 4, 4), 0.01, origin=(0, 0, 1.0)), frames, sc=scenario((0, 0, -G)))
@@ -70,8 +69,7 @@ def test_free_fall_centre_of_mass_follows_parabola():
     exact = 0.5 * G * frames ** 2
     late = frames >= 0.05
     assert np.all(np.abs(fall[late] - exact[late]) <= 0.01 * exact[late]), (fall, exact)
-    dt = traj.meta["dt_max"]
-    assert np.all(np.abs(fall - exact) <= 0.5 * G * frames * dt * 1.01 + 1e-6)
+    assert np.all(np.abs(fall - exact) <= 1e-4), np.abs(fall - exact).max()
     # the tracked points (here the particles' own rest positions) fall with them
     assert np.allclose(traj.positions.mean(1)[:, 2], z, atol=1e-4)
 

@@ -75,9 +75,9 @@ REGION_FACTOR_BOUNDS = (0.1, 10.0)
 """Range of the stiffness factor of one region."""
 UNBATCHED_SOLVERS = ("spring_mass",)
 """Solvers whose ``run_batch`` results depend on what else is in the batch: the spring-mass solver steps
-every environment with the smallest stable substep among them, and its time-integration error
-(≈ g·t·Δt/2 in free flight, millimetres) then changes with the company a parameter set keeps, which
-breaks finite differences and comparisons.  Their environments run one per launch (on the CPU this
+every environment with the smallest stable substep among them, and its time-integration error (of
+deformation and contact; free flight is exact with its leapfrog stepping) then changes with the company a
+parameter set keeps, which breaks finite differences and comparisons.  Their environments run one per launch (on the CPU this
 costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
 DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}, "mpm": {"cells_across": 12, "viscous_cfl": 0.2}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
