@@ -70,6 +70,31 @@ def half_edge_force(e: int, h: int, xi: wp.vec3, vi: wp.vec3, x: wp.array2d(dtyp
 
 
 @wp.func
+def spring_force_sum(e: int, i: int, first: int, stride: int, xi: wp.vec3, vi: wp.vec3,
+                     x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), rest: wp.array2d(dtype=float),
+                     kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                     yield_strain: wp.array2d(dtype=float), start: wp.array(dtype=int), nbr: wp.array(dtype=int)):
+    """Sum (N) of :func:`half_edge_force` over anchor ``i``'s half-edges start[i] + first, + stride, ... (all of
+    them with first 0, stride 1; one lane's share in a block of lanes)."""
+    f = wp.vec3(0.0, 0.0, 0.0)
+    h = start[i] + first
+    stop = start[i + 1]
+    while h < stop:
+        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+        h += stride
+    return f
+
+
+@wp.func
+def kicked_velocity(e: int, vi: wp.vec3, f: wp.vec3, im: float, accel: wp.array(dtype=wp.vec3),
+                    lin_drag: wp.array(dtype=float), quad_drag: wp.array(dtype=float), tau: float):
+    """Velocity (m/s) after a kick of τ s: vi + τ (body acceleration + im f), with the drags implicit
+    (v / (1 + τ (c + k |v|)): unconditionally stable for τ > 0)."""
+    vn = vi + tau * (accel[e] + im * f)
+    return vn / (1.0 + tau * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+
+
+@wp.func
 def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: float,
                      x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
                      accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
@@ -77,9 +102,7 @@ def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: f
                      ground: float, has_ground: int, dt: float):
     """Semi-implicit Euler update of anchor ``i`` (inverse mass ``im``, 1/kg) under the spring force ``f`` (N),
     body acceleration, drags and ground contact; writes x_out[e, i], v_out[e, i]."""
-    vn = vi + dt * (accel[e] + im * f)
-    # drags, implicit in the velocity (unconditionally stable): v / (1 + dt (c + k |v|))
-    vn = vn / (1.0 + dt * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+    vn = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, dt)
     xn, vf = advance(xi, vn, dt, ground, has_ground, friction[e])
     x_out[e, i] = xn
     v_out[e, i] = vf
@@ -117,12 +140,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
         return
     xi = x[e, i]
     vi = v[e, i]
-    f = wp.vec3(0.0, 0.0, 0.0)
-    h = start[i] + lane
-    stop = start[i + 1]
-    while h < stop:
-        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
-        h += wp.block_dim()
+    f = spring_force_sum(e, i, lane, wp.block_dim(), xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
     total = wp.tile_sum(wp.tile(f, preserve_type=True))
     if lane == 0:
         integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, friction, ground,
@@ -146,11 +164,8 @@ def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
         return
     xi = x[e, i]
     vi = v[e, i]
-    f = wp.vec3(0.0, 0.0, 0.0)
-    for h in range(start[i], start[i + 1]):
-        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
-    vn = vi + tau * (accel[e] + im * f)
-    v[e, i] = vn / (1.0 + tau * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+    f = spring_force_sum(e, i, 0, 1, xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
+    v[e, i] = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, tau)
 
 
 @wp.kernel

@@ -49,8 +49,6 @@ class BatchGate:
     _waiting: int = 0  # jobs waiting for their own nested jobs (they make no requests meanwhile)
     _failed: Optional[BaseException] = None
     _local: threading.local = field(default_factory=threading.local)
-    batches: int = 0
-    """Batches run so far (each one call of ``run`` per key)."""
 
     def in_job(self) -> bool:
         """Is the current thread one of :meth:`map`'s jobs (whose requests must go through :meth:`request`)?"""
@@ -176,7 +174,6 @@ class BatchGate:
         for reqs in by_key.values():
             items = [item for req in reqs for item in req.items]
             out = self.run(items, reqs[0].key)
-            self.batches += 1
             at = 0
             with self._cond:
                 for req in reqs:

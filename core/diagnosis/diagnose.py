@@ -43,8 +43,8 @@ What it does (``shared/specs/measurement-format.md`` §3, ``shared/notes/diagnos
 
 from __future__ import annotations
 
-import dataclasses
 import contextvars
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -77,8 +77,8 @@ UNBATCHED_SOLVERS = ("spring_mass",)
 """Solvers whose ``run_batch`` results depend on what else is in the batch: the spring-mass solver steps
 every environment with the smallest stable substep among them, and its time-integration error (of
 deformation and contact; free flight is exact with its leapfrog stepping) then changes with the company a
-parameter set keeps, which breaks finite differences and comparisons.  Their environments run one per launch (on the CPU this
-costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
+parameter set keeps, which breaks finite differences and comparisons.  Their environments run one per
+launch (on the CPU this costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
 DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}, "mpm": {"cells_across": 12, "viscous_cfl": 0.2}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
 spring-mass anchors, 32 MPM cells across), because a diagnosis runs hundreds of simulations
