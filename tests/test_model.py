@@ -300,3 +300,39 @@ def test_predict_command(tmp_path):
     _grid(feature_model="other").save(tmp_path / "other.npz")
     assert main(["predict", str(tmp_path / "other.npz"), "--checkpoint", str(tmp_path / "ck"), "--out", str(out),
                  "--device", "cpu"]) == 2
+
+
+def test_local_context_sees_its_receptive_field_and_reaches_the_decoders():
+    """With ``local_context_layers`` the decoders' per-voxel local features gain the context channels; a
+    voxel's context changes with a voxel inside its receptive field (1 + 2·(2^L − 1) voxels per side) and
+    not with one outside it; the old behaviour (0 layers) is unchanged in shape."""
+    Rl = 16
+    cfg = dict(grid_resolution=Rl, local_context_layers=2, local_context_channels=5)
+    torch.manual_seed(0)
+    m = UniPixieModel(preset("tiny", feature_model="test-features", feature_dim=D, spring_anchors=ANCHORS, **cfg)).eval()
+    assert m.cfg.local_channels == m.cfg.voxel_channels + 5
+    occ = np.ones((Rl, Rl, Rl), bool)
+    feats = np.random.default_rng(0).normal(size=(occ.sum(), D))
+    batch = VoxelBatch.from_grids([occ], [feats])
+    with torch.no_grad():
+        _, local = m.encoder(batch)
+    assert local.shape == (Rl ** 3, m.cfg.local_channels)
+    # receptive field of 2 layers (dilations 1, 2): 1 + 2·3 = 7 voxels, i.e. ±3 voxels per axis
+    centre = (8, 8, 8)
+    row = lambda ijk: int(np.ravel_multi_index(ijk, occ.shape))  # noqa: E731  (C order = argwhere order)
+    for offset, should_change in ((3, True), (4, False)):
+        changed = feats.copy()
+        changed[row((8 + offset, 8, 8))] += 5.0 * np.arange(D)  # not a constant: LayerNorm removes those
+        with torch.no_grad():
+            _, local2 = m.encoder(VoxelBatch.from_grids([occ], [changed]))
+        ctx_delta = float((local2[row(centre), m.cfg.voxel_channels:] - local[row(centre), m.cfg.voxel_channels:]).abs().max())
+        assert (ctx_delta > 1e-6) == should_change, (offset, ctx_delta)
+    with pytest.raises(UserError, match="local_context_layers needs local_features"):
+        preset("tiny", local_context_layers=2, local_features=False)
+    with pytest.raises(UserError, match="local_context_layers must be an integer"):
+        preset("tiny", local_context_layers=-1)
+    # and the full model runs with it (decoder local projection sized for the extra channels)
+    with torch.no_grad():
+        pred = Predictor(m).predict(FeatureGrid(GridGeometry(Rl, [-0.5] * 3, 1.0 / Rl), occ, feats.astype(np.float16),
+                                                feature_model="test-features"), alphas=[0.0, 1.0], steps=2)
+    assert np.all(np.isfinite(pred.mpm[0].E))

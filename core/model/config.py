@@ -60,6 +60,11 @@ class ModelConfig:
     patch_size: P, decoder tokens are occupied P³ patches of the grid (1 = one token per voxel).
     local_features: decoder tokens also see their voxels' projected input features (a skip from the
         encoder's per-voxel projection; not in the paper, see docs/model.md).
+    local_context_layers / local_context_channels: with ``local_features``, a stack of this many
+        residual 3x3x3 Conv3d layers at full resolution R³ (dilations 1, 2, 4, ...; receptive field
+        1 + 2·(2^layers − 1) voxels) over the dense stem input adds ``local_context_channels`` per voxel
+        to the decoders' local features: where inside the object a voxel lies and what surrounds it
+        (0 layers = off, the behaviour of checkpoints made before it; not in the paper, see docs/model.md).
     time_frequencies / alpha_embedding_dim: Fourier features of t, sinusoidal embedding width of α.
     mpm_blocks / lbs_blocks / spring_blocks: FMT blocks per head.
     hypernet_layers / hypernet_width: the LBS HyperNetwork MLP.
@@ -83,6 +88,8 @@ class ModelConfig:
     encoder_self_layers: int = 2
     patch_size: int = 4
     local_features: bool = True
+    local_context_layers: int = 0
+    local_context_channels: int = 16
     time_frequencies: int = 6
     alpha_embedding_dim: int = 64
     mpm_blocks: int = 6
@@ -118,6 +125,11 @@ class ModelConfig:
         return self.grid_resolution // 4
 
     @property
+    def local_channels(self) -> int:
+        """Per-voxel channels of the decoders' local features: c0 (+ the local context's channels)."""
+        return self.voxel_channels + (self.local_context_channels if self.local_context_layers else 0)
+
+    @property
     def patch_voxels(self) -> int:
         return self.patch_size ** 3
 
@@ -138,6 +150,13 @@ class ModelConfig:
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v > 0, f"{name} must be a positive integer, got {v!r}")
         need(self.encoder_self_layers >= 0, "encoder_self_layers must be >= 0")
+        for name in ("local_context_layers", "local_context_channels"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, f"{name} must be an integer >= 0, got {v!r}")
+        need(self.local_context_layers == 0 or (self.local_features and self.local_context_channels > 0),
+             "local_context_layers needs local_features = True and local_context_channels > 0")
+        need(2 ** max(self.local_context_layers - 1, 0) < self.grid_resolution,
+             f"local_context_layers {self.local_context_layers}: the largest dilation would exceed the grid")
         need(self.grid_resolution % 4 == 0, f"grid_resolution must be a multiple of 4 (two stride-2 convs), got {self.grid_resolution}")
         need(self.grid_resolution % self.patch_size == 0,
              f"grid_resolution {self.grid_resolution} must be a multiple of patch_size {self.patch_size}")
@@ -199,7 +218,8 @@ PRESETS: dict[str, dict] = {
     "paper": {},
     "small": dict(width=256, attention_heads=8, stem_channels=128, voxel_channels=16, latent_tokens=32,
                   encoder_blocks=3, encoder_self_layers=1, mpm_blocks=4, lbs_blocks=3, spring_blocks=2,
-                  hypernet_width=256, mlp_ratio=3.0, spring_chunk=128),
+                  hypernet_width=256, mlp_ratio=3.0, spring_chunk=128, local_context_layers=5,
+                  local_context_channels=24),
     "tiny": dict(width=64, attention_heads=4, stem_channels=32, voxel_channels=8, latent_tokens=8,
                  encoder_blocks=1, encoder_self_layers=1, mpm_blocks=2, lbs_blocks=2, spring_blocks=2,
                  hypernet_width=64, fourier_frequencies=4, time_frequencies=6, alpha_embedding_dim=16,

@@ -11,6 +11,10 @@
    latents to the grid tokens followed by ``encoder_self_layers`` self-attention layers; final LayerNorm.
 
 The projected per-voxel features (N, c0) are returned too: decoders with ``local_features`` use them.
+With ``local_context_layers`` > 0, a :class:`LocalContext` stack (residual dilated 3x3x3 convolutions at
+full resolution over the dense stem input) adds ``local_context_channels`` per occupied voxel to them,
+(N, c0 + c_ctx): the decoders' tokens then know where inside the object their voxels lie (depth under
+the surface, the neighbouring parts), which a P³ patch of surface-filled features cannot tell.
 """
 
 from __future__ import annotations
@@ -23,6 +27,27 @@ from .layers import TransformerBlock, fourier_dim, fourier_encode, fourier_frequ
 from .layout import VoxelBatch
 
 
+class LocalContext(nn.Module):
+    """Residual dilated 3x3x3 convolutions at full resolution: (B, c0 + 1, R, R, R) -> (B, c_ctx, R, R, R).
+
+    Layer 0 maps the stem input to c_ctx channels (dilation 1); layer i > 0 adds
+    Conv3d(GELU(h), dilation 2^i) to h.  Receptive field: 1 + 2·(2^layers − 1) voxels per side.
+    """
+
+    def __init__(self, in_channels: int, channels: int, layers: int):
+        super().__init__()
+        self.inp = nn.Conv3d(in_channels, channels, 3, padding=1)
+        self.convs = nn.ModuleList(nn.Conv3d(channels, channels, 3, padding=2 ** i, dilation=2 ** i)
+                                   for i in range(1, layers))
+        self.act = nn.GELU()
+
+    def forward(self, x):
+        h = self.inp(x)
+        for conv in self.convs:
+            h = h + conv(self.act(h))
+        return h
+
+
 class GridEncoder(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -33,6 +58,8 @@ class GridEncoder(nn.Module):
         self.conv1 = nn.Conv3d(cfg.voxel_channels + 1, cfg.stem_channels, 4, stride=2, padding=1)
         self.conv2 = nn.Conv3d(cfg.stem_channels, C, 4, stride=2, padding=1)
         self.act = nn.GELU()
+        self.local_context = (LocalContext(cfg.voxel_channels + 1, cfg.local_context_channels, cfg.local_context_layers)
+                              if cfg.local_context_layers else None)
         self.register_buffer("pos_freqs", fourier_frequencies(cfg.fourier_frequencies, cfg.coarse_resolution / 2),
                              persistent=False)
         self.pos_proj = nn.Linear(fourier_dim(cfg.fourier_frequencies), C)
@@ -63,10 +90,18 @@ class GridEncoder(nn.Module):
         return dense.permute(0, 4, 1, 2, 3)  # channels-last-3d memory layout, logical (B, c, R, R, R)
 
     def forward(self, batch: VoxelBatch):
-        """-> (z (B, L, C) latent tokens, projected per-voxel features (N, c0))."""
+        """-> (z (B, L, C) latent tokens, per-voxel local features (N, cfg.local_channels)).
+
+        The local features are the projected input features (N, c0), followed by the local context's
+        channels when ``local_context_layers`` > 0.
+        """
         projected = self.project_voxels(batch.features)
-        x = self.dense_stem_input(batch, projected)
-        x = self.conv2(self.act(self.conv1(x)))  # (B, C, R/4, R/4, R/4)
+        dense = self.dense_stem_input(batch, projected)
+        if self.local_context is not None:
+            v = batch.voxels
+            context = self.local_context(dense).permute(0, 2, 3, 4, 1)[v[:, 0], v[:, 1], v[:, 2], v[:, 3]]
+            projected = torch.cat([projected, context.to(projected.dtype)], dim=-1)
+        x = self.conv2(self.act(self.conv1(dense)))  # (B, C, R/4, R/4, R/4)
         tokens = x.flatten(2).transpose(1, 2)  # (B, (R/4)³, C), cell order i, j, k (C order)
         pos = self.pos_proj(fourier_encode(self.cell_centres, self.pos_freqs))
         tokens = tokens + pos.to(tokens.dtype)[None]

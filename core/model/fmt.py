@@ -7,7 +7,8 @@ so every token's output depends only on its own input, t, α and z.
 
 * :class:`GridFMT` — tokens are occupied P³ patches of the voxel grid (DiT-style "patchify"):
   token input = Linear(noisy values of its P³ voxels ⊕ their occupancy) + Linear(Fourier(patch centre))
-  [+ Linear(projected input features of its voxels) when ``local_features``].  Output per voxel:
+  [+ Linear(projected input features of its voxels, and their local context when
+  ``local_context_layers``) when ``local_features``].  Output per voxel:
   the velocity of each channel, plus ``extra_outputs`` per-voxel logits (MPM material classes).
   Unoccupied slots are zeroed in the input and in the output.
 * :class:`VectorFMT` — tokens are consecutive chunks of one global vector (spring-mass k ⊕ η), with a
@@ -90,10 +91,11 @@ class GridFMT(_FMTBase):
         patches_per_side = cfg.grid_resolution // cfg.patch_size  # frequencies up to the patch grid's Nyquist
         self.register_buffer("pos_freqs", fourier_frequencies(cfg.fourier_frequencies, patches_per_side / 2),
                              persistent=False)
-        self.local_proj = nn.Linear(S * cfg.voxel_channels, C) if cfg.local_features else None
+        self.local_proj = nn.Linear(S * cfg.local_channels, C) if cfg.local_features else None
 
     def context(self, z, centres, slot_mask, local_tokens=None) -> DecoderContext:
-        """z (B, L, C); centres (B, T, 3); slot_mask (B, T, P³); local_tokens (B, T, P³·c0) or None."""
+        """z (B, L, C); centres (B, T, 3); slot_mask (B, T, P³);
+        local_tokens (B, T, P³·cfg.local_channels) or None."""
         base = self.pos_proj(fourier_encode(centres, self.pos_freqs))
         if self.local_proj is not None:
             base = base + self.local_proj(local_tokens)

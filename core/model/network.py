@@ -2,7 +2,7 @@
 
 Shapes (B objects, N occupied voxels in all, T patch tokens per object, S = P³ slots per token):
 
-* ``encode(batch)`` -> :class:`Encoded`: z (B, L, C), projected voxel features (N, c0), the patch layout.
+* ``encode(batch)`` -> :class:`Encoded`: z (B, L, C), local voxel features (N, c), the patch layout.
 * ``mpm``: :class:`~.fmt.GridFMT`, 3 flow channels (log10 E, log10 ρ, ν normalised) + class logits
   (``cfg.num_classes``, the registry's classes) per voxel.
 * ``lbs_material``: GridFMT, 2 flow channels (log10 E, ν normalised) per voxel.
@@ -27,8 +27,9 @@ from .normalization import LBS_CHANNELS, MPM_CHANNELS
 
 @dataclass
 class Encoded:
-    """An encoded batch: latents z (B, L, C), per-voxel projected features (N, c0), patch layout and the
-    per-token local features (B, T, S·c0) (None without ``local_features``)."""
+    """An encoded batch: latents z (B, L, C), per-voxel local features (N, c) (c = cfg.local_channels: the
+    projected features, then the local context if any), patch layout and the per-token local features
+    (B, T, S·c) (None without ``local_features``)."""
 
     z: torch.Tensor
     projected: torch.Tensor
