@@ -336,3 +336,43 @@ def test_local_context_sees_its_receptive_field_and_reaches_the_decoders():
         pred = Predictor(m).predict(FeatureGrid(GridGeometry(Rl, [-0.5] * 3, 1.0 / Rl), occ, feats.astype(np.float16),
                                                 feature_model="test-features"), alphas=[0.0, 1.0], steps=2)
     assert np.all(np.isfinite(pred.mpm[0].E))
+
+
+def test_flow_times_are_the_training_quantiles_and_the_sampler_uses_them():
+    """The sampler's step times are the quantiles of the logit-normal training distribution of t: 0 and 1
+    at the ends, increasing, each step holding 1/steps of the training draws; the network is evaluated at
+    exactly those times (the last step is Euler for data prediction), never above the last quantile."""
+    from statistics import NormalDist
+
+    from unipixie.core.model.inference import flow_times
+    from unipixie.core.model.objective import SamplingSettings
+
+    ts = flow_times(15)
+    assert ts[0] == 0.0 and ts[-1] == 1.0 and np.all(np.diff(ts) > 0) and len(ts) == 16
+    d = SamplingSettings()
+    logit = np.log(ts[1:-1] / (1 - ts[1:-1]))
+    shares = np.diff([0.0] + [NormalDist(d.t_mean, d.t_std).cdf(x) for x in logit] + [1.0])
+    assert np.allclose(shares, 1 / 15)
+    assert 0.59 < ts[-2] < 0.61  # the default N(-0.8, 0.8): last time before 1 is 0.60
+    assert flow_times(1).tolist() == [0.0, 1.0]
+    assert flow_times(4, 0.0, 1.0)[2] == pytest.approx(0.5)  # the median of a centred logit-normal
+    with pytest.raises(UserError, match="steps must be >= 1"):
+        flow_times(0)
+    with pytest.raises(UserError, match="positive spread"):
+        flow_times(4, 0.0, 0.0)
+    # the predictor asks the network at exactly these times
+    m = _model()
+    seen = []
+    original = m.mpm.forward
+
+    def spy(x, t, alpha, ctx):
+        seen.append(float(t[0]))
+        return original(x, t, alpha, ctx)
+
+    m.mpm.forward = spy
+    p = Predictor(m, sampling={"t_mean": 0.3, "t_std": 1.2})
+    p.predict(_grid(), [0.2, 0.7], heads=("mpm",), steps=4)
+    want = flow_times(4, 0.3, 1.2)
+    heun_times = [want[0], want[1], want[1], want[2], want[2], want[3], want[3]]  # last step Euler: no t = 1
+    assert seen == pytest.approx(heun_times)
+    assert p.sampler_id != Predictor(m).sampler_id  # cache keys tell the two samplers apart

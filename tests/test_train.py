@@ -156,6 +156,14 @@ def test_train_command_then_predict(data, tmp_path):
                  "--device", "cpu", "--set", "latent_tokens=4", "--save-dtype", "bfloat16"]) == 0
     cfg = json.loads((out / "config.json").read_text())["config"]
     assert cfg["latent_tokens"] == 4 and cfg["feature_model"] == "synthetic-test" and cfg["spring_anchors"] == 6
+    # the flow-time distribution of training goes with the weights, and the sampler steps through it
+    from unipixie.core.model.checkpoint import load_model
+    from unipixie.core.model.inference import Predictor
+    from unipixie.core.model.objective import SamplingSettings
+
+    _, info = load_model(out)
+    assert info["sampling"]["t_mean"] == SamplingSettings().t_mean and info["sampling"]["t_std"] == SamplingSettings().t_std
+    assert Predictor.load(out, device="cpu").t_mean == SamplingSettings().t_mean
     assert main(["train", "--data", str(data), "--out", str(out), "--steps", "2", "--preset", "tiny"]) == 2
     grid = TrainingSample.load(list_samples(data)[0]).grid.save(tmp_path / "grid.npz")
     assert main(["predict", str(grid), "--checkpoint", str(out), "--alpha", "0.3", "--steps", "2", "--device", "cpu",

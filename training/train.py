@@ -284,10 +284,13 @@ def _save(out: Path, objective, optimizer, step: int, s: TrainSettings, fingerpr
     import torch
 
     from ..core.model.checkpoint import save_model, save_training_state
+    from ..core.model.objective import SamplingSettings
 
     dtype = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}[s.save_dtype]
+    # the flow-time distribution goes with the weights: the sampler steps through its quantiles
+    sampling = asdict(SamplingSettings(**s.sampling))
     save_model(objective.model, out, dtype=dtype, info={"step": step, "data_fingerprint": fingerprint,
-                                                          "preset": s.preset})
+                                                          "preset": s.preset, "sampling": sampling})
     save_training_state(out, optimizer, step, asdict(s), fingerprint, extra=stats)
     recipe = Path(s.data) / "feature_recipe.json"   # how the training objects were rendered (training/pack.py)
     if recipe.is_file():

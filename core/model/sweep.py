@@ -177,7 +177,7 @@ def sweep_alphas(count: int = DEFAULT_SWEEP_COUNT) -> np.ndarray:
 def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, steps: int, heads) -> str:
     return content_key("alpha-sweep", predictor.key or predictor.checkpoint, grid.occupancy, grid.features,
                        grid.feature_model, grid.geometry.to_dict(), np.asarray(alphas, np.float64), int(seed), int(steps),
-                       sorted(heads), predictor.precision)
+                       sorted(heads), predictor.precision, predictor.sampler_id)
 
 
 def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_SWEEP_COUNT, seed: int = 0,
