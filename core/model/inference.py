@@ -20,8 +20,8 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from statistics import NormalDist
 from pathlib import Path
+from statistics import NormalDist
 from typing import Optional, Sequence
 
 import numpy as np
