@@ -664,10 +664,13 @@ class SpringMassSimulation(Simulation):
                 wp.launch(K.store_state, dim=(n_env, n), inputs=[x, v, out_x, out_v, frame], device=dev)
 
         def kick(tau: float) -> None:
-            """Leapfrog bookkeeping: v += τ a(x, v) on the current state (buffer 0), positions unchanged."""
+            """Leapfrog bookkeeping: v += τ a(x, v) on the current state (buffer 0), positions unchanged.  The
+            kicked velocities go to buffer 1 (free between frames) and are copied back: every anchor's dashpots
+            read its neighbours' velocities from before the kick."""
             wp.launch(K.velocity_kick, dim=(n_env, n), device=dev,
-                      inputs=[bufs[0][0], bufs[0][1], d_rest, d_kappa, d_dash, d_yield, self._d_start, self._d_nbr,
-                              self._d_inv_mass, d_accel, d_lin, d_quad, float(tau)])
+                      inputs=[bufs[0][0], bufs[0][1], bufs[1][1], d_rest, d_kappa, d_dash, d_yield, self._d_start,
+                              self._d_nbr, self._d_inv_mass, d_accel, d_lin, d_quad, float(tau)])
+            wp.copy(bufs[0][1], bufs[1][1])
 
         total_substeps = 0
         t_start = time.perf_counter()

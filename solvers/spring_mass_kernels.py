@@ -148,7 +148,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
 
 
 @wp.kernel
-def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
                   rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
                   dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
                   start: wp.array(dtype=int), nbr: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
@@ -157,15 +157,17 @@ def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     """Velocity kick v += τ a(x, v) of anchor ``i`` in environment ``e`` (positions unchanged), with the forces of
     :func:`spring_substep` (drags implicit): the leapfrog start (τ = −Δt/2: the velocities become those half a
     substep earlier) and its correction when the substep changes from Δt to Δt' (τ = (Δt − Δt')/2).  Same arrays
-    and units as :func:`spring_substep`; τ in s (may be negative)."""
+    and units as :func:`spring_substep`; the kicked velocities go to ``v_out`` (not ``v``, which the dashpots of
+    the neighbours still read); τ in s (may be negative)."""
     e, i = wp.tid()
     im = inv_mass[i]
+    vi = v[e, i]
     if im == 0.0:
+        v_out[e, i] = vi
         return
     xi = x[e, i]
-    vi = v[e, i]
     f = spring_force_sum(e, i, 0, 1, xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
-    v[e, i] = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, tau)
+    v_out[e, i] = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, tau)
 
 
 @wp.kernel

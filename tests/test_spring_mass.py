@@ -353,3 +353,26 @@ def test_bad_input_gets_clear_errors():
         sm.prepare(body, HomogeneousMaterial(1e5, 0.3, 1000.0, "background"), Scenario(), t, settings={"anchors": 50})
     with pytest.raises(UserError, match="N_a stiffnesses"):
         sm.split_parameter_vector([1.0])
+
+
+def test_velocity_kick_reads_the_velocities_from_before_the_kick():
+    """Two anchors, one spring with a dashpot, equal and opposite velocities, no body force: the kick must
+    keep the momentum zero.  Written in place, the second anchor's dashpot would read the first anchor's
+    velocity after its kick (on the CPU, threads run in order) and the pair would gain momentum."""
+    from unipixie.solvers import spring_mass_kernels as K
+    from unipixie.solvers.warp_runtime import init_warp
+
+    wp = init_warp()
+    x = wp.array(np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]]), dtype=wp.vec3, device="cpu")
+    v0 = np.array([[[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+    v = wp.array(v0, dtype=wp.vec3, device="cpu")
+    v_out = wp.zeros((1, 2), dtype=wp.vec3, device="cpu")
+    two = lambda value: wp.array(np.full((1, 2), value), dtype=float, device="cpu")  # noqa: E731  per half-edge
+    one = lambda value, dtype=float: wp.array(np.asarray(value), dtype=dtype, device="cpu")  # noqa: E731
+    wp.launch(K.velocity_kick, dim=(1, 2), device="cpu",
+              inputs=[x, v, v_out, two(0.1), two(100.0), two(5.0), two(K.BIG), one([0, 1, 2], int), one([1, 0], int),
+                      one([1.0, 1.0]), one(np.zeros((1, 3)), wp.vec3), one([0.0]), one([0.0]), 0.01])
+    out = v_out.numpy()[0]
+    assert np.allclose(v.numpy(), v0)  # the input is left alone
+    assert abs(out[0, 0]) < 1.0 and abs(out[1, 0]) < 1.0  # the dashpot slowed both down
+    assert abs(out[0, 0] + out[1, 0]) < 1e-6  # ... by the same amount
