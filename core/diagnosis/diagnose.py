@@ -764,7 +764,12 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     plans = {n: _plan(n, sc, material.mean_E()) for n in names}
     not_applicable = _not_applicable(names, measurement, sigma)
     round_no = 0
-    half_sim = None  # the simulation at half the time step, prepared when first needed
+    half_sims: list = []  # the simulation at half the time step, prepared when first needed
+
+    def half_step_sim():
+        if not half_sims:
+            half_sims.append(_half_step_sim(P, settings, measurement, material, body, frame_times, device))
+        return half_sims[0]
     while True:
         round_no += 1
         say(f"{2 + round_no}. round {round_no}: fitting {len(names) - len(not_applicable)} candidate effects "
@@ -832,9 +837,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         ahead = leading[0] if P.parallel and leading and dt_check and leading[0].name in DAMPING_LIKE else None
         dt_jobs, dt_finish = [], None
         if ahead is not None:
-            if half_sim is None:
-                half_sim = _half_step_sim(P, settings, measurement, material, body, frame_times, device)
-            dt_jobs, dt_finish = _half_step_jobs(P, ref, ahead, sigma, half_sim, lm_iterations, progress)
+            dt_jobs, dt_finish = _half_step_jobs(P, ref, ahead, sigma, half_step_sim(), lm_iterations, progress)
         if holdout_jobs or dt_jobs:
             progress.set_status(f"round {round_no}: held-out check of {', '.join(c.name for c in leading)}"
                                 + (f"; {ahead.name} at half the time step" if ahead is not None else ""))
@@ -854,9 +857,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         if dt_check and top is not None and top.name in DAMPING_LIKE:
             if top.name not in dt_done:
                 progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
-                if half_sim is None:
-                    half_sim = _half_step_sim(P, settings, measurement, material, body, frame_times, device)
-                jobs, finish = _half_step_jobs(P, ref, top, sigma, half_sim, lm_iterations, progress)
+                jobs, finish = _half_step_jobs(P, ref, top, sigma, half_step_sim(), lm_iterations, progress)
                 dt_done[top.name] = finish(P.side_by_side(jobs))
             top.dt_check = dt_done[top.name]
             if top.dt_check.get("ok") is False:

@@ -97,10 +97,11 @@ class GridEncoder(nn.Module):
         """
         projected = self.project_voxels(batch.features)
         dense = self.dense_stem_input(batch, projected)
+        local = projected
         if self.local_context is not None:
             v = batch.voxels
             context = self.local_context(dense).permute(0, 2, 3, 4, 1)[v[:, 0], v[:, 1], v[:, 2], v[:, 3]]
-            projected = torch.cat([projected, context.to(projected.dtype)], dim=-1)
+            local = torch.cat([projected, context.to(projected.dtype)], dim=-1)
         x = self.conv2(self.act(self.conv1(dense)))  # (B, C, R/4, R/4, R/4)
         tokens = x.flatten(2).transpose(1, 2)  # (B, (R/4)³, C), cell order i, j, k (C order)
         pos = self.pos_proj(fourier_encode(self.cell_centres, self.pos_freqs))
@@ -108,7 +109,7 @@ class GridEncoder(nn.Module):
         z = self.latents[None].expand(batch.batch_size, -1, -1).to(tokens.dtype)
         for blk in self.blocks:
             z = blk(z, tokens) if blk.cross else blk(z)
-        return self.out_norm(z), projected
+        return self.out_norm(z), local
 
     def encode_dense(self, features: torch.Tensor, occupancy: torch.Tensor):
         """Encode dense inputs: features (B, D, R, R, R), occupancy (B, R, R, R) bool.

@@ -121,7 +121,8 @@ def check_alphas(alphas) -> np.ndarray:
     return a
 
 
-def flow_times(steps: int, t_mean: float | None = None, t_std: float | None = None) -> np.ndarray:
+def flow_times(steps: int, t_mean: float = SamplingSettings.t_mean,
+               t_std: float = SamplingSettings.t_std) -> np.ndarray:
     """The step times (steps + 1,) from 0 to 1: t_i = sigmoid(t_mean + t_std · Φ⁻¹(i / steps)) inside.
 
     These are the quantiles of the logit-normal distribution the flow times were drawn from in training
@@ -135,9 +136,7 @@ def flow_times(steps: int, t_mean: float | None = None, t_std: float | None = No
     steps = int(steps)
     if steps < 1:
         raise UserError(f"steps must be >= 1, got {steps}")
-    default = SamplingSettings()
-    mean = default.t_mean if t_mean is None else float(t_mean)
-    std = default.t_std if t_std is None else float(t_std)
+    mean, std = float(t_mean), float(t_std)
     if not (math.isfinite(mean) and math.isfinite(std) and std > 0):
         raise UserError(f"flow-time distribution needs a finite mean and a positive spread, got N({mean}, {std})")
     normal = NormalDist()
@@ -193,9 +192,8 @@ class Predictor:
         # the logit-normal N(t_mean, t_std) the flow times were drawn from in training (from the
         # checkpoint's info; checkpoints that do not record it were trained with the default)
         sampling = dict(sampling or {})
-        default = SamplingSettings()
-        self.t_mean = float(sampling.get("t_mean", default.t_mean))
-        self.t_std = float(sampling.get("t_std", default.t_std))
+        self.t_mean = float(sampling.get("t_mean", SamplingSettings.t_mean))
+        self.t_std = float(sampling.get("t_std", SamplingSettings.t_std))
 
     def times(self, steps: int) -> np.ndarray:
         """The flow times the sampler steps through (:func:`flow_times`)."""
