@@ -183,22 +183,38 @@ def target_channels(sample, cfg: UNetConfig, alpha: float) -> np.ndarray:
     return ((1.0 - alpha) * lo + alpha * hi).astype(np.float32)
 
 
-def _batch(samples, cfg: UNetConfig, alphas, device):
+def dense_sample(sample, cfg: UNetConfig, device) -> dict:
+    """One training sample as dense tensors on ``device``, built once and reused every step it is drawn.
+
+    x: (D + 1, R, R, R) float16 features and occupancy (the samples store float16 features, so nothing is
+    lost); lo / hi: (3, R, R, R) float32 normalised targets at α = 0 and α = 1 (0 outside the object);
+    cls: (R, R, R) int8 material class, −1 outside the object.
+    """
     torch = _torch()
-    xs, ys, cls, mask = [], [], [], []
     R = cfg.grid_resolution
-    for s, a in zip(samples, alphas):
-        xs.append(dense_input(s.grid))
-        idx = torch.from_numpy(s.grid.indices)
-        y = torch.zeros(3, R, R, R)
-        y[:, idx[:, 0], idx[:, 1], idx[:, 2]] = torch.from_numpy(target_channels(s, cfg, a)).T
-        c = torch.full((R, R, R), -1, dtype=torch.int64)
-        c[idx[:, 0], idx[:, 1], idx[:, 2]] = torch.from_numpy(s.mpm.material.astype(np.int64))
-        ys.append(y)
-        cls.append(c)
-        mask.append(xs[-1][-1] > 0)
-    return (torch.stack(xs).to(device), torch.stack(ys).to(device), torch.stack(cls).to(device),
-            torch.stack(mask).to(device))
+    idx = torch.from_numpy(sample.grid.indices.astype(np.int64))
+    lo = torch.zeros(3, R, R, R)
+    hi = torch.zeros(3, R, R, R)
+    lo[:, idx[:, 0], idx[:, 1], idx[:, 2]] = torch.from_numpy(target_channels(sample, cfg, 0.0)).T
+    hi[:, idx[:, 0], idx[:, 1], idx[:, 2]] = torch.from_numpy(target_channels(sample, cfg, 1.0)).T
+    cls = torch.full((R, R, R), -1, dtype=torch.int8)
+    cls[idx[:, 0], idx[:, 1], idx[:, 2]] = torch.from_numpy(sample.mpm.material.astype(np.int8))
+    return {"x": dense_input(sample.grid).half().to(device), "lo": lo.to(device), "hi": hi.to(device),
+            "cls": cls.to(device)}
+
+
+def _batch(dense: list, alphas) -> tuple:
+    """Stack dense samples (:func:`dense_sample`) into a batch at the given α, one per sample.
+
+    Returns x (B, D + 1, R, R, R) float32, y (B, 3, R, R, R) float32 (the LERP of the normalised ranges,
+    linear in the model's channels), cls (B, R, R, R) int64 and the occupancy mask (B, R, R, R) bool.
+    """
+    torch = _torch()
+    x = torch.stack([d["x"] for d in dense]).float()
+    a = torch.tensor(alphas, dtype=torch.float32, device=x.device)[:, None, None, None, None]
+    y = (1.0 - a) * torch.stack([d["lo"] for d in dense]) + a * torch.stack([d["hi"] for d in dense])
+    cls = torch.stack([d["cls"] for d in dense]).long()
+    return x, y, cls, x[:, -1] > 0
 
 
 def _ddpm_schedule(device):
@@ -280,15 +296,16 @@ def train(s: BaselineTrainSettings, log=print) -> dict:
         for i in pick:
             smp = cache.get(int(i))
             if smp is None:
-                smp = TrainingSample.load(files[i])
-                if smp.grid.feature_model != cfg.feature_model or smp.grid.dim != cfg.feature_dim:
-                    raise UserError(f"{files[i]}: features {smp.grid.feature_model!r} (D = {smp.grid.dim}) differ from "
-                                    f"the first sample's {cfg.feature_model!r} (D = {cfg.feature_dim})")
+                loaded = TrainingSample.load(files[i])
+                if loaded.grid.feature_model != cfg.feature_model or loaded.grid.dim != cfg.feature_dim:
+                    raise UserError(f"{files[i]}: features {loaded.grid.feature_model!r} (D = {loaded.grid.dim}) "
+                                    f"differ from the first sample's {cfg.feature_model!r} (D = {cfg.feature_dim})")
+                smp = dense_sample(loaded, cfg, dev)
                 if len(cache) < s.cache_limit:
                     cache[int(i)] = smp
             samples.append(smp)
         alphas = [0.5] * len(samples) if s.kind == "deterministic" else list(rng.uniform(0, 1, len(samples)))
-        x, y, cls, mask = _batch(samples, cfg, alphas, dev)
+        x, y, cls, mask = _batch(samples, alphas)
         alpha_t = torch.tensor(alphas, dtype=torch.float32, device=dev)
         mse, ce = _losses(net, cfg, x, y, cls, mask, abar, gen, alpha_t)
         loss = mse + ce
