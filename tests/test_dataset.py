@@ -174,9 +174,16 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     assert all(r["rmse_m"] is not None and r["psnr"] is not None for r in report["table2"] if r["method"] == "unipixie")
     assert (out / "logE_distributions.png").stat().st_size > 10_000
 
+    # the reference predictors (training/oracle.py): scored by the same code, kept apart from the methods
+    refs = report["references"]
+    assert set(refs) == {"oracle_appearance", "oracle_appearance_midpoint"} and report["references_skipped"] is None
+    assert refs["oracle_appearance"]["material_acc"] == 1.0
+    assert refs["oracle_appearance"]["logE_mse"] < refs["oracle_appearance_midpoint"]["logE_mse"]
+    assert "*oracle_appearance* (reference)" in (out / "report.md").read_text()
+
     # the report's numbers, recomputed here from the raw predictions
     test_ids = json.loads((built / "split.json").read_text())["test"]
-    for method, m in report["methods"].items():
+    for method, m in {**report["methods"], **refs}.items():
         per_obj = []
         for oid in test_ids:
             p = np.load(out / "predictions" / method / f"{oid}.npz")
@@ -204,6 +211,14 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     assert fr["0"]["all"]["0"] == 1.0 and fr["1"]["all"]["0"] == 1.0
     perfect["log10_E"] = perfect["log10_E"] + 5.0
     assert in_range_fractions(perfect, t)["0"]["E"]["0.25"] == 0.0
+
+    # again without the references: none reported, and the earlier run's reference predictions are gone
+    assert cli(["evaluate", str(ck), "--data", str(built), "--out", str(out), "--device", "cpu", "--no-oracle",
+                "--simulate-objects", "0", "--no-mean-prediction"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["references"] == {} and "--no-oracle" in report["references_skipped"]
+    assert "oracle_appearance" not in report["table1"]
+    assert not (out / "predictions" / "oracle_appearance").exists()
 
 
 def test_a_failing_object_is_recorded_and_the_build_goes_on(built, tmp_path, monkeypatch):

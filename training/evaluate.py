@@ -49,6 +49,7 @@ import numpy as np
 from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
 from . import annotation as ann_mod
+from .oracle import REFERENCES
 
 REPORT_FORMAT = "unipixie.evaluation/1"
 TOLERANCES = (0.0, 0.1, 0.25)
@@ -64,7 +65,9 @@ class EvalSettings:
     render_resolution: the PSNR/SSIM renders (0 frames = no renders).  mean_prediction: also evaluate
     ``unipixie_mean``, the model's one-step prediction (steps = 1: the data-predicting network's output from
     pure noise, its estimate of the conditional mean — the MSE-optimal point estimate), besides the
-    sampled ``unipixie`` (the paper's ODE sampler)."""
+    sampled ``unipixie`` (the paper's ODE sampler).  oracle: on a procedural dataset, also score the
+    reference predictors of :mod:`.oracle` (what the best possible model reaches on these labels), each
+    from ``oracle_draws`` annotations drawn from the generator's priors."""
 
     alphas: tuple = (0.0, 0.5, 1.0)
     split: str = "test"
@@ -78,6 +81,8 @@ class EvalSettings:
     render_views: int = 2
     render_resolution: int = 128
     mean_prediction: bool = True
+    oracle: bool = True
+    oracle_draws: int = 1000
 
 
 # =========================================================================== metrics
@@ -501,6 +506,8 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
     table2_rows: list = []
     renders: list = []
     failures: list = []
+    oracle_skipped = None if settings.oracle else "not asked for (--no-oracle)"
+    _drop_references(pred_root)                # never score another run's reference predictions
     t_all = time.perf_counter()
     for n, oid in enumerate(ids):
         sample = ds.sample(oid)
@@ -511,6 +518,8 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         preds = methods.predict_all(sample.grid, alphas)
         for name, (arrays, _) in preds.items():
             _save_npz(pred_root / name / f"{oid}.npz", **arrays)
+        if settings.oracle and oracle_skipped is None:
+            oracle_skipped = _save_oracle(ds, oid, sample, alphas, settings, pred_root)
         if "unipixie" in preds:
             arr = preds["unipixie"][0]
             for i, a in enumerate(alphas):
@@ -535,11 +544,18 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         progress.step(1.0, oid)
 
     t1 = table1(pred_root)
+    if oracle_skipped is not None:             # a reference that failed part-way is not reported at all
+        _drop_references(pred_root)
+        for name in REFERENCES:
+            t1.pop(name, None)
+    summary = ("logE_mse", "logrho_mse", "nu_mse", "material_acc", "runtime_s")
     report = {"format": REPORT_FORMAT, "checkpoint": str(checkpoint) if checkpoint else None,
               "dataset": str(data), "split": settings.split, "objects": len(ids), "alphas": alphas,
-              "settings": asdict(settings), "methods": {k: {kk: v[kk] for kk in ("logE_mse", "logrho_mse", "nu_mse",
-                                                                                "material_acc", "runtime_s")}
-                                                        for k, v in t1.items()},
+              "settings": asdict(settings),
+              "methods": {k: {kk: v[kk] for kk in summary} for k, v in t1.items() if k not in REFERENCES},
+              "references": {k: {"description": REFERENCES[k], **{kk: v[kk] for kk in summary}}
+                             for k, v in t1.items() if k in REFERENCES},
+              "references_skipped": oracle_skipped,
               "table1": t1, "in_range": {k: v.get("in_range", {}) for k, v in t1.items()},
               "table2": _summarise_table2(table2_rows, renders), "table2_objects": sim_ids,
               "table2_failures": failures, "seconds": time.perf_counter() - t_all}
@@ -556,6 +572,28 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
     (out / "report.json").write_text(json.dumps(report, indent=1, default=_jd))
     (out / "report.md").write_text(report_markdown(report))
     return report
+
+
+def _drop_references(pred_root: Path) -> None:
+    import shutil
+
+    for name in REFERENCES:
+        shutil.rmtree(pred_root / name, ignore_errors=True)
+
+
+def _save_oracle(ds, oid, sample, alphas, settings: EvalSettings, pred_root: Path):
+    """Write both references' predictions of one object; returns None, or why the references are skipped."""
+    from .oracle import OracleSettings, oracle_predictions
+
+    try:
+        part_ids, _ = ds.part_labels(oid)
+        preds = oracle_predictions(ds.annotation(oid), part_ids, sample.grid.indices, sample.grid.geometry.resolution,
+                                   alphas, OracleSettings(draws=settings.oracle_draws, seed=settings.seed))
+    except (UserError, OSError) as exc:
+        return f"{oid}: {exc}"
+    for name, arrays in preds.items():
+        _save_npz(pred_root / name / f"{oid}.npz", **arrays)
+    return None
 
 
 def _jd(o):
@@ -657,23 +695,30 @@ def report_markdown(r: dict) -> str:
          f"- features: {fm}{clip_note}", f"- α values: {', '.join(f'{a:g}' for a in r['alphas'])}", "",
          "## Table 1: physical property regression (averaged over α; log = log10)", "",
          "| method | log E MSE | log ρ MSE | ν MSE | material acc. | runtime (s) |", "|---|---|---|---|---|---|"]
+    refs = r.get("references") or {}
+    shown = {name: (f"*{name}* (reference)" if name in refs else name) for name in r["table1"]}
     for name, m in r["table1"].items():
-        L.append(f"| {name} | {m['logE_mse']:.4f} ± {m['logE_mse_std']:.3f} | {m['logrho_mse']:.4f} ± "
+        L.append(f"| {shown[name]} | {m['logE_mse']:.4f} ± {m['logE_mse_std']:.3f} | {m['logrho_mse']:.4f} ± "
                  f"{m['logrho_mse_std']:.3f} | {m['nu_mse']:.5f} ± {m['nu_mse_std']:.4f} | "
                  f"{100 * m['material_acc']:.1f} % | {m['runtime_s']:.3f} |")
+    if refs:
+        L += ["", "References (not methods: they know what no image shows, and bound what any model can reach on "
+                  "these labels; training/oracle.py):"] + [f"- *{k}*: {v['description']}" for k, v in refs.items()]
+    elif r.get("references_skipped"):
+        L += ["", f"Reference predictors not computed: {r['references_skipped']}"]
     L += ["", "Mean log E over the object non-decreasing in α: " + ", ".join(
         f"{name} {100 * m['logE_monotone_fraction']:.0f} % of objects" for name, m in r["table1"].items()
         if "logE_monotone_fraction" in m), ""]
     L += ["", "Per α (log E MSE):", "", "| method | " + " | ".join(f"α = {a:g}" for a in r["alphas"]) + " |",
           "|---|" + "---|" * len(r["alphas"])]
     for name, m in r["table1"].items():
-        L.append(f"| {name} | " + " | ".join(f"{v:.4f}" for v in m["logE_mse_per_alpha"].values()) + " |")
+        L.append(f"| {shown[name]} | " + " | ".join(f"{v:.4f}" for v in m["logE_mse_per_alpha"].values()) + " |")
     L += ["", "## Predictions inside the annotated ranges (fraction of occupied voxels)", "",
           "| method | α | quantity | tol 0 | tol 10 % | tol 25 % |", "|---|---|---|---|---|---|"]
     for name, rng in r["in_range"].items():
         for a, qs in rng.items():
             for q, v in qs.items():
-                L.append(f"| {name} | {a} | {q} | " + " | ".join(f"{100 * v[t]:.1f} %" for t in ("0", "0.1", "0.25")) + " |")
+                L.append(f"| {shown.get(name, name)} | {a} | {q} | " + " | ".join(f"{100 * v[t]:.1f} %" for t in ("0", "0.1", "0.25")) + " |")
     if r["table2"]:
         L += ["", f"## Table 2: solver fidelity against the ground-truth MPM motion ({len(r['table2_objects'])} objects)", "",
               "| solver | method | α | RMSE (mm) | RMSE / size | PSNR (dB) | SSIM | time (s) | failed |",

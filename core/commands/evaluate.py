@@ -35,6 +35,11 @@ def add_arguments(p):
     p.add_argument("--no-mean-prediction", action="store_true",
                    help="do not also evaluate 'unipixie_mean' (the model's one-step conditional-mean prediction)")
     p.add_argument("--render-resolution", type=_common.positive_int, default=128, help="render size (default 128)")
+    p.add_argument("--no-oracle", action="store_true",
+                   help="do not score the reference predictors (procedural datasets only: the best any model can "
+                        "reach on the labels, from the generator's own priors; training/oracle.py)")
+    p.add_argument("--oracle-draws", type=int, default=1000,
+                   help="annotations drawn per object for the reference predictors (default 1000, at least 10)")
 
 
 def run(args) -> int:
@@ -65,7 +70,10 @@ def run(args) -> int:
                             seed=args.seed, max_objects=args.max_objects, simulate_objects=args.simulate_objects,
                             fitters=not args.no_fitters, render_frames=args.render_frames,
                             render_views=args.render_views, render_resolution=args.render_resolution,
-                            mean_prediction=not args.no_mean_prediction)
+                            mean_prediction=not args.no_mean_prediction, oracle=not args.no_oracle,
+                            oracle_draws=args.oracle_draws)
+    if settings.oracle and settings.oracle_draws < 10:
+        raise UserError(f"--oracle-draws {args.oracle_draws}: must be at least 10")
     from ...training.dataset import DatasetDir
 
     n = len(DatasetDir(args.data).ids(args.split))
@@ -76,5 +84,10 @@ def run(args) -> int:
     for name, m in report["methods"].items():
         print(f"{name}: log E MSE {m['logE_mse']:.4f}, log rho MSE {m['logrho_mse']:.4f}, nu MSE {m['nu_mse']:.5f}, "
               f"material {100 * m['material_acc']:.1f} %, {m['runtime_s']:.3f} s")
+    for name, m in report["references"].items():
+        print(f"reference {name}: log E MSE {m['logE_mse']:.4f}, log rho MSE {m['logrho_mse']:.4f}, "
+              f"nu MSE {m['nu_mse']:.5f}")
+    if report["references_skipped"] and settings.oracle:
+        print(f"reference predictors skipped: {report['references_skipped']}")
     print(f"report: {args.out}/report.md and report.json")
     return 0
