@@ -227,6 +227,10 @@ def _ddpm_schedule(device):
 # =========================================================================== training
 @dataclass
 class BaselineTrainSettings:
+    """How a baseline is trained.  cache_limit: training samples kept as dense tensors on the training
+    device (:func:`dense_sample`; about 24 MB each at 64³ with D = 32, so the default of 1024 needs up to
+    about 25 GB there); samples beyond it are rebuilt each time they are drawn."""
+
     data: str
     out: str
     kind: str = "deterministic"
@@ -241,7 +245,7 @@ class BaselineTrainSettings:
     device: str = "auto"
     log_every: int = 50
     save_every: int = 1000
-    cache_limit: int = 2048
+    cache_limit: int = 1024
 
 
 def _losses(net, cfg, x, y, cls, mask, abar, gen, alpha_t):
