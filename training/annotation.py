@@ -297,6 +297,12 @@ def validate(ann: Annotation, source: str = "annotation") -> Annotation:
     return ann
 
 
+def channel(values, quantity: str) -> np.ndarray:
+    """Physical values -> the channel the model and the metrics use: log10 for E and density, as is for ν."""
+    v = np.asarray(values, np.float64)
+    return np.log10(v) if quantity in LOG_QUANTITIES else v
+
+
 def interpolate(lo, hi, alpha, quantity: str):
     """The label at ``alpha`` between ``lo`` (α = 0) and ``hi`` (α = 1); arrays broadcast.
 

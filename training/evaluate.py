@@ -49,7 +49,7 @@ import numpy as np
 from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
 from . import annotation as ann_mod
-from .oracle import REFERENCES
+from .oracle import REFERENCES, OracleSettings, oracle_predictions
 
 REPORT_FORMAT = "unipixie.evaluation/1"
 TOLERANCES = (0.0, 0.1, 0.25)
@@ -86,15 +86,9 @@ class EvalSettings:
 
 
 # =========================================================================== metrics
-def channel(values, quantity: str) -> np.ndarray:
-    """Physical values -> the channel the metrics use: log10 for E and density, as is for ν."""
-    v = np.asarray(values, np.float64)
-    return np.log10(v) if quantity in ann_mod.LOG_QUANTITIES else v
-
-
 def targets_at(targets: dict, alpha: float) -> dict:
     """Targets (K,) at ``alpha`` in metric channels: ``E``, ``density``, ``nu`` and ``material``."""
-    out = {q: channel(ann_mod.interpolate(targets[f"{q}_min"], targets[f"{q}_max"], alpha, q), q)
+    out = {q: ann_mod.channel(ann_mod.interpolate(targets[f"{q}_min"], targets[f"{q}_max"], alpha, q), q)
            for q in ann_mod.QUANTITIES}
     out["material"] = targets["material"]
     return out
@@ -123,7 +117,7 @@ def in_range_fractions(pred: dict, targets: dict, tolerances=TOLERANCES) -> dict
             continue
         res, all_in = {}, {}
         for q in ann_mod.QUANTITIES:
-            lo, hi = channel(targets[f"{q}_min"], q), channel(targets[f"{q}_max"], q)
+            lo, hi = ann_mod.channel(targets[f"{q}_min"], q), ann_mod.channel(targets[f"{q}_max"], q)
             w = hi - lo
             p = pred[names[q]][i]
             res[q] = {}
@@ -507,6 +501,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
     renders: list = []
     failures: list = []
     oracle_skipped = None if settings.oracle else "not asked for (--no-oracle)"
+    oracle_settings = OracleSettings(draws=settings.oracle_draws, seed=settings.seed) if settings.oracle else None
     _drop_references(pred_root)                # never score another run's reference predictions
     t_all = time.perf_counter()
     for n, oid in enumerate(ids):
@@ -519,7 +514,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         for name, (arrays, _) in preds.items():
             _save_npz(pred_root / name / f"{oid}.npz", **arrays)
         if settings.oracle and oracle_skipped is None:
-            oracle_skipped = _save_oracle(ds, oid, sample, alphas, settings, pred_root)
+            oracle_skipped = _save_oracle(ds, oid, sample, alphas, oracle_settings, pred_root)
         if "unipixie" in preds:
             arr = preds["unipixie"][0]
             for i, a in enumerate(alphas):
@@ -581,14 +576,12 @@ def _drop_references(pred_root: Path) -> None:
         shutil.rmtree(pred_root / name, ignore_errors=True)
 
 
-def _save_oracle(ds, oid, sample, alphas, settings: EvalSettings, pred_root: Path):
+def _save_oracle(ds, oid, sample, alphas, settings: OracleSettings, pred_root: Path):
     """Write both references' predictions of one object; returns None, or why the references are skipped."""
-    from .oracle import OracleSettings, oracle_predictions
-
     try:
         part_ids, _ = ds.part_labels(oid)
         preds = oracle_predictions(ds.annotation(oid), part_ids, sample.grid.indices, sample.grid.geometry.resolution,
-                                   alphas, OracleSettings(draws=settings.oracle_draws, seed=settings.seed))
+                                   alphas, settings)
     except (UserError, OSError) as exc:
         return f"{oid}: {exc}"
     for name, arrays in preds.items():
@@ -718,7 +711,7 @@ def report_markdown(r: dict) -> str:
     for name, rng in r["in_range"].items():
         for a, qs in rng.items():
             for q, v in qs.items():
-                L.append(f"| {shown.get(name, name)} | {a} | {q} | " + " | ".join(f"{100 * v[t]:.1f} %" for t in ("0", "0.1", "0.25")) + " |")
+                L.append(f"| {shown[name]} | {a} | {q} | " + " | ".join(f"{100 * v[t]:.1f} %" for t in ("0", "0.1", "0.25")) + " |")
     if r["table2"]:
         L += ["", f"## Table 2: solver fidelity against the ground-truth MPM motion ({len(r['table2_objects'])} objects)", "",
               "| solver | method | α | RMSE (mm) | RMSE / size | PSNR (dB) | SSIM | time (s) | failed |",

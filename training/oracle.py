@@ -68,11 +68,6 @@ class OracleSettings:
             raise UserError(f"oracle draws must be at least 10, got {self.draws}")
 
 
-def _channel(values, quantity: str) -> np.ndarray:
-    v = np.asarray(values, np.float64)
-    return np.log10(v) if quantity in ann_mod.LOG_QUANTITIES else v
-
-
 def visible_parts(part_ids: np.ndarray, indices: np.ndarray, resolution: int) -> np.ndarray:
     """(P,) bool: parts with at least one voxel on the occupied grid's outer surface.
 
@@ -132,8 +127,8 @@ def part_label_moments(semantic_class: str, variant: str, codes: dict, hidden: s
         table = ann_mod.part_table(ann_mod.sample_annotation(semantic_class, variant, c, rng))
         material = table["material"]
         for q in ann_mod.QUANTITIES:
-            lo[q].append(_channel(table[f"{q}_min"], q))
-            hi[q].append(_channel(table[f"{q}_max"], q))
+            lo[q].append(ann_mod.channel(table[f"{q}_min"], q))
+            hi[q].append(ann_mod.channel(table[f"{q}_max"], q))
     out = {q: (np.mean(lo[q], axis=0), np.mean(hi[q], axis=0)) for q in ann_mod.QUANTITIES}
     out["material"] = material
     return out

@@ -72,8 +72,6 @@ def run(args) -> int:
                             render_views=args.render_views, render_resolution=args.render_resolution,
                             mean_prediction=not args.no_mean_prediction, oracle=not args.no_oracle,
                             oracle_draws=args.oracle_draws)
-    if settings.oracle and settings.oracle_draws < 10:
-        raise UserError(f"--oracle-draws {args.oracle_draws}: must be at least 10")
     from ...training.dataset import DatasetDir
 
     n = len(DatasetDir(args.data).ids(args.split))

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -764,12 +765,11 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     plans = {n: _plan(n, sc, material.mean_E()) for n in names}
     not_applicable = _not_applicable(names, measurement, sigma)
     round_no = 0
-    half_sims: list = []  # the simulation at half the time step, prepared when first needed
 
+    @functools.cache
     def half_step_sim():
-        if not half_sims:
-            half_sims.append(_half_step_sim(P, settings, measurement, material, body, frame_times, device))
-        return half_sims[0]
+        """The simulation at half the time step, prepared when first needed."""
+        return _half_step_sim(P, settings, measurement, material, body, frame_times, device)
     while True:
         round_no += 1
         say(f"{2 + round_no}. round {round_no}: fitting {len(names) - len(not_applicable)} candidate effects "
