@@ -384,6 +384,10 @@ class MPMSimulation(Simulation):
         tv0[tracked_held] = 0.0
 
         self.dx = float(dx)
+        # a particle stands for a cube of material: its lower face touches the ground (solvers/contact.py)
+        spacing = float(np.mean(volumes)) ** (1.0 / 3.0)
+        self.contact_radius = 0.5 * spacing
+        self.contact_area = spacing * spacing
         self.sample_positions = points
         self.particle_volume = volumes
         self.material = sampled
@@ -469,7 +473,7 @@ class MPMSimulation(Simulation):
         env = {"dt": wp.zeros(envs, dtype=float, device=dev), "steps": wp.zeros(envs, dtype=wp.int32, device=dev),
                "origin": wp.zeros(envs, dtype=wp.vec3, device=dev), "yield": wp.zeros(envs, dtype=float, device=dev),
                "eta": wp.zeros(envs, dtype=float, device=dev), "acc": wp.zeros(envs, dtype=wp.vec3, device=dev),
-               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev),
+               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "ground": wp.zeros(envs, dtype=wp.vec3, device=dev),
                "kick": wp.zeros(envs, dtype=float, device=dev)}
         sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
@@ -514,7 +518,7 @@ class MPMSimulation(Simulation):
         total = nodes * buf.envs
         buf.commands.clear()  # launches and graphs hold the old grid
         buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
-                    "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
+                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
         buf.grid_dims = grow
 
     # ------------------------------------------------------------------ running
@@ -538,13 +542,13 @@ class MPMSimulation(Simulation):
         # ---- per-environment parameters
         acc = np.zeros((E, 3))
         drag = np.zeros((E, 2))
-        friction = np.zeros(E)
+        ground_law = np.zeros((E, 3))  # (k_g Pa/m, c_g Pa·s/m, μ) of the contact law (solvers/contact.py)
         yield_stress = np.full(E, np.inf)
         eta = np.zeros(E)
         for e, terms in enumerate(terms_list):
             acc[e] = sc.gravity + np.asarray(terms.extra_acceleration, dtype=np.float64)
             drag[e] = (terms.linear_drag, terms.quadratic_drag)
-            friction[e] = terms.friction_mu
+            ground_law[e] = (min(terms.ground_stiffness, 1e30), terms.ground_damping, terms.friction_mu)
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
@@ -569,7 +573,7 @@ class MPMSimulation(Simulation):
         Env["eta"].assign(eta.astype(np.float32))
         Env["acc"].assign(acc.astype(np.float32))
         Env["drag"].assign(drag.astype(np.float32))
-        Env["friction"].assign(friction.astype(np.float32))
+        Env["ground"].assign(ground_law.astype(np.float32))
         buf.lost.zero_()
         self._p2g_kernel = self._choose_p2g(yield_stress)
         self._run_tuning = tuning
@@ -868,12 +872,13 @@ class MPMSimulation(Simulation):
                                       inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"],
                                               P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
                                               Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
-                                              n, N, nodes, dims, dx, inv_dx, 0],
-                                      outputs=[G["mv"], G["held"], buf.lost])),
+                                              Env["ground"], has_ground, ground_z, self.contact_radius,
+                                              self.contact_area, n, N, nodes, dims, dx, inv_dx, 0],
+                                      outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
                     ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
-                                                      Env["drag"], Env["friction"], Env["origin"], buf.step_base,
-                                                      nodes, dims, dx, has_ground, ground_z, 0],
+                                                      Env["drag"], buf.step_base, nodes, 0, Env["ground"],
+                                                      G["contact"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
             kc = self._cuda_kernels()

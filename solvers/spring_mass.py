@@ -102,6 +102,7 @@ from .effects import PhysicsTerms
 from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_material
 from .sampling import farthest_point_sampling, fill_mesh, voxel_downsample
 from .scenario import Scenario
+from .contact import RIGID_CONTACT_BETA
 
 DEFAULT_ANCHORS = 2048
 """N_a: anchors of the network (the paper's spring head predicts N_a stiffnesses + 1 softness)."""
@@ -117,6 +118,8 @@ SPRING_PARAM_COUNT = DEFAULT_ANCHORS + 1
 """Length of the model's spring-mass vector (k ∈ R^{N_a}, η): 2049."""
 NETWORK_POISSON_RATIO = 0.25
 """Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ)."""
+P_WAVE_PER_E = (1 - NETWORK_POISSON_RATIO) / ((1 + NETWORK_POISSON_RATIO) * (1 - 2 * NETWORK_POISSON_RATIO))
+"""M / E = (1 − ν) / ((1 + ν)(1 − 2ν)) of the network's material (ν = 1/4): its P-wave modulus per unit E."""
 AFFINE_STIFFNESS_FACTOR = 12.0
 """k_i = c_E · 12 E_i V_i / Σ w_s L_s (affine network, see module docstring)."""
 AFFINE_DASHPOT_FACTOR = 30.0
@@ -495,7 +498,11 @@ class SpringMassSimulation(Simulation):
             self.warnings.append("the spring-mass solver models " + ", ".join(sorted(inelastic))
                                  + " material as an elastic spring network (no granular/fluid/snow law)")
         self.inv_mass = np.where(net.pinned, 0.0, 1.0 / net.mass)
-        self.contact_offset = 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
+        # contact: each anchor's cell (its fill points and nearest surface samples) touches the ground with its
+        # lowest point, over the area V^(2/3) of a cube of its volume (solvers/contact.py)
+        self.contact_size = net.volume ** (1.0 / 3.0)
+        self.contact_area = self.contact_size ** 2
+        self._cell_points = self._contact_cells(body)
         # half-edges in CSR order
         s_idx = np.arange(len(net.springs))
         src = np.concatenate([net.springs[:, 0], net.springs[:, 1]])
@@ -526,6 +533,30 @@ class SpringMassSimulation(Simulation):
         self._upload_static()
 
     # -------------------------------------------------------------------------------- helpers
+    def _contact_cells(self, body: Body) -> tuple[np.ndarray, np.ndarray]:
+        """Each anchor's contact cell as CSR: (N + 1,) int32 starts and (Q, 3) m offsets X_q − X_i of its points.
+
+        The points are the anchor's fill points and the solid's surface samples (mesh vertices and area samples,
+        or the body's own points) nearest to it, so the lowest one reaches the solid's surface.
+        """
+        from scipy.spatial import cKDTree
+
+        net = self.network
+        pts = [net.fill_points]
+        if body.mesh is not None:
+            import trimesh
+
+            count = max(8 * net.count, 1000)
+            surf, _ = trimesh.sample.sample_surface_even(body.mesh, count, seed=0)
+            pts += [np.asarray(body.mesh.vertices, np.float64), np.asarray(surf, np.float64)]
+        # a point body's points stand for cubes of material: its surface lies half their spacing further out
+        self.contact_margin = 0.0 if body.mesh is not None else 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
+        allp = np.concatenate(pts)
+        _, owner = cKDTree(net.anchors).query(allp)
+        order = np.argsort(owner, kind="stable")
+        start = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=net.count))]).astype(np.int32)
+        return start, allp[order] - net.anchors[owner[order]]
+
     def _kappa(self, k_anchor: np.ndarray) -> np.ndarray:
         """(S,) N/m spring constants for per-anchor stiffness (N,) newtons."""
         s = self.network.springs
@@ -542,6 +573,10 @@ class SpringMassSimulation(Simulation):
         self._d_track_rest = wp.array(self.tracked_rest.astype(np.float32), dtype=wp.vec3, device=dev)
         self._d_bind_idx = wp.array(self.binding_index, dtype=wp.int32, device=dev)
         self._d_bind_w = wp.array(self.binding_weight.astype(np.float32), dtype=wp.float32, device=dev)
+        start, offsets = self._cell_points
+        self._d_cell_start = wp.array(start, dtype=wp.int32, device=dev)
+        self._d_cell_offsets = wp.array(offsets.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._d_contact_area = wp.array(self.contact_area.astype(np.float32), dtype=wp.float32, device=dev)
 
     def env_arrays(self, terms: PhysicsTerms) -> dict:
         """Per-environment numpy arrays for one set of physics terms (half-edge order)."""
@@ -621,7 +656,15 @@ class SpringMassSimulation(Simulation):
         d_accel = wp.array(accel, dtype=wp.vec3, device=dev)
         d_lin = wp.array(np.array([t.linear_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
         d_quad = wp.array(np.array([t.quadratic_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
-        d_mu = wp.array(np.array([t.friction_mu for t in terms_list], np.float32), dtype=wp.float32, device=dev)
+        ground_law = np.array([(min(t.ground_stiffness, 1e30), t.ground_damping, t.friction_mu) for t in terms_list])
+        d_ground_law = wp.array(ground_law.astype(np.float32), dtype=wp.vec3, device=dev)
+        # each anchor's rigid-floor spring k_r = β² M A / ℓ (solvers/contact.py), M of the network's material
+        M = P_WAVE_PER_E * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
+        rigid_k = RIGID_CONTACT_BETA ** 2 * M * (self.contact_area / self.contact_size)[None]
+        eta = np.array([t.damping_eta for t in terms_list])[:, None]
+        d_rigid_k = wp.array(rigid_k.astype(np.float32), dtype=wp.float32, device=dev)
+        d_rigid_c = wp.array((2.0 * eta * rigid_k / M).astype(np.float32), dtype=wp.float32, device=dev)
+        d_contact_low = wp.zeros((n_env, n), dtype=wp.float32, device=dev)
         x0 = np.tile(net.anchors.astype(np.float32), (n_env, 1, 1))
         v0 = np.tile(self.scenario.initial_velocities(net.anchors, net.mass).astype(np.float32), (n_env, 1, 1))
         v0[:, net.pinned] = 0.0
@@ -633,8 +676,7 @@ class SpringMassSimulation(Simulation):
             out_x = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
             out_v = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
         has_ground = 0 if self.scenario.ground_height is None else 1
-        # anchors stand for cells of material: they touch the ground half a fill spacing above it
-        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height) + self.contact_offset
+        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height)
 
         use_graph = wp.get_device(dev).is_cuda
         lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
@@ -642,8 +684,9 @@ class SpringMassSimulation(Simulation):
         def launch_substep(a, b, dt, record_cmd=False):
             """Launch (or record) one substep from buffer a to buffer b."""
             inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash, d_yield,
-                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad, d_mu,
-                      ground, has_ground, float(dt)]
+                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad,
+                      d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c, ground, has_ground,
+                      float(dt)]
             return wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
                                    record_cmd=record_cmd)
 
@@ -656,9 +699,13 @@ class SpringMassSimulation(Simulation):
             x, v = bufs[0]
             wp.launch(K.anchor_rotations, dim=(n_env, n), inputs=[x, self._d_rest_pos, self._d_start, self._d_nbr,
                                                                    self._d_gram_inv, rot], device=dev)
+            if has_ground:  # the cells' lowest points for the next frame's contacts (rotation lagged by a frame)
+                wp.launch(K.contact_depths, dim=(n_env, n), inputs=[rot, self._d_cell_start, self._d_cell_offsets,
+                                                                     self.contact_margin, d_contact_low], device=dev)
             if P:
                 wp.launch(K.bind_points, dim=(n_env, P), inputs=[x, self._d_rest_pos, rot, self._d_track_rest,
-                                                                  self._d_bind_idx, self._d_bind_w, out_track, frame],
+                                                                  self._d_bind_idx, self._d_bind_w, ground, has_ground,
+                                                                  out_track, frame],
                           device=dev)
             if particle_states:
                 wp.launch(K.store_state, dim=(n_env, n), inputs=[x, v, out_x, out_v, frame], device=dev)
