@@ -70,9 +70,15 @@ class _Tuning:
 class MPMSettings:
     """Numerical settings of the MPM solver (SI units).
 
-    dx: grid cell size in metres; ``None`` = the body's largest extent / ``cells_across`` for a
-        mesh, or ``particles_per_cell_axis`` × the point spacing for a particle set.
+    dx: grid cell size in metres; ``None`` = for a mesh, the finer of the body's largest extent / ``cells_across``
+        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, but no
+        finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
+        ``particles_per_cell_axis`` × the point spacing.
     cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None).
+    cells_across_thinnest: grid cells across the thinnest parts of a mesh body (when ``dx`` is None): a slender
+        bar, a trunk or a leaf bends as the continuum does only with several cells across it
+        (docs/fidelity.md measures how many).
+    auto_max_particles: the particle budget of the automatic ``dx``.
     particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
         particle volume = cell volume / particles per cell.
     jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
@@ -110,6 +116,8 @@ class MPMSettings:
 
     dx: Optional[float] = None
     cells_across: int = 32
+    cells_across_thinnest: int = 4
+    auto_max_particles: int = 2_000_000
     particles_per_cell_axis: int = 2
     jitter: float = 0.0
     seed: int = 0
@@ -143,8 +151,8 @@ class MPMSettings:
             self.dx = positive("dx", self.dx)
         if self.max_dt is not None:
             self.max_dt = positive("max_dt", self.max_dt)
-        for name in ("cells_across", "particles_per_cell_axis", "max_substeps_per_frame", "max_grid_nodes",
-                     "max_particles"):
+        for name in ("cells_across", "cells_across_thinnest", "auto_max_particles", "particles_per_cell_axis",
+                     "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
             setattr(self, name, positive(name, getattr(self, name), integer=True))
         self.cfl = positive("cfl", self.cfl)
         self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
@@ -308,6 +316,8 @@ class MPMSimulation(Simulation):
     def __init__(self, body: Body, scenario: Scenario, frame_times, device: str, settings: MPMSettings):
         super().__init__(body, scenario, frame_times, device)
         self.settings = settings
+        self.warnings: list[str] = list(body.warnings)
+        self.thinnest_part: Optional[float] = None  # m, measured when dx is chosen automatically
         self._buffer_sets: dict[int, _Buffers] = {}  # batch size -> device arrays (least recently used first)
         self._kc = None  # mpm_kernels_cuda, imported on first use
         self._profile: Optional[list] = None  # (section, start, end) while profile() runs
@@ -327,8 +337,7 @@ class MPMSimulation(Simulation):
             dx = s.dx if s.dx is not None else s.particles_per_cell_axis * volume ** (1.0 / 3.0)
             volumes = np.full(len(points), volume)
         else:
-            extent = float(np.max(np.asarray(body.mesh.extents, dtype=np.float64)))
-            dx = s.dx if s.dx is not None else extent / s.cells_across
+            dx = s.dx if s.dx is not None else self._automatic_dx(body.mesh)
             spacing = dx / s.particles_per_cell_axis
             estimate = float(np.prod(np.ceil(np.asarray(body.mesh.extents) / spacing)))
             if estimate > 4 * s.max_particles:
@@ -431,6 +440,26 @@ class MPMSimulation(Simulation):
         if tuning.scatter != "atomic" or tuning.split_g2p:
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
+
+    def _automatic_dx(self, mesh) -> float:
+        """dx (m) for a mesh body when the settings give none (see :class:`MPMSettings`); records a warning when the
+        particle budget keeps the thinnest parts under-resolved."""
+        from .sampling import thinnest_part
+
+        s = self.settings
+        extent = float(np.max(np.asarray(mesh.extents, dtype=np.float64)))
+        thin = thinnest_part(mesh)
+        dx = min(extent / s.cells_across, thin / s.cells_across_thinnest)
+        volume = float(mesh.volume) if mesh.is_watertight and mesh.volume > 0 else float(np.prod(mesh.extents))
+        budget_dx = s.particles_per_cell_axis * (volume / s.auto_max_particles) ** (1.0 / 3.0)
+        if dx < budget_dx:
+            dx = budget_dx
+            self.warnings.append(f"MPM: the thinnest parts ({thin * 1000:.3g} mm) get only {thin / dx:.1f} cells "
+                                 f"across within the particle budget (settings auto_max_particles = "
+                                 f"{s.auto_max_particles:,}); their bending is resolved coarsely - give dx or a "
+                                 "larger budget (a GPU affords millions of particles)")
+        self.thinnest_part = thin
+        return dx
 
     @property
     def particle_count(self) -> int:
@@ -667,7 +696,7 @@ class MPMSimulation(Simulation):
                     "dt": dt_log[e].tolist(), "substeps": steps_log[e].tolist(),
                     "dt_min": float(dt_log[e].min()) if F_count > 1 else None,
                     "dt_max": float(dt_log[e].max()) if F_count > 1 else None,
-                    "substeps_total": int(steps_log[e].sum()), "wall_time_s": wall,
+                    "substeps_total": int(steps_log[e].sum()), "wall_time_s": wall, "warnings": list(self.warnings),
                     "particle_substeps": int(steps_log[e].sum()) * N}
             traj = Trajectory(times=times, positions=out_positions[e], solver=self.solver, meta=meta)
             if states is not None and e == 0:

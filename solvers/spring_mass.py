@@ -61,7 +61,12 @@ E = S / (6V), S = Σ_s κ_s L_s².  Attributing to each anchor its springs' shar
 
     k_i = c_E · 12 E_i V_i / Σ_{s∋i} w_s L_s          (with κ_s as above)
 
-with E_i the volume mean of E over anchor i's cell.  The calibration ``c_E``
+with E_i the volume mean of E over anchor i's cell.  Σ_{s∋i} w_s L_s assumes the anchor's springs spread evenly
+over all directions; in a thin part (a bar or a leaf a few anchors thick) they lie along the part, and the
+network is stiffer there (a 0.04 × 0.02 m bar 3 anchors thick stretched 10 % too little).  So the sum is
+replaced by the one that fits the anchor's affine stiffness tensor (∝ k_i Σ w L d⊗d⊗d⊗d) to the isotropic
+one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:meth:`AnchorNetwork.fabric_sums`; equal to
+Σ w L for evenly spread springs; the bar then stretches within 1 %).  The calibration ``c_E``
 (:data:`STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
@@ -100,7 +105,7 @@ from .api import Simulation
 from .body import Body
 from .effects import PhysicsTerms
 from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_material
-from .sampling import farthest_point_sampling, fill_mesh, voxel_downsample
+from .sampling import farthest_point_sampling, fill_mesh, thickness_at, voxel_downsample
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA
 
@@ -126,6 +131,10 @@ AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
 STIFFNESS_CALIBRATION = 0.94
 """c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
+ANCHORS_ACROSS_THIN = 3.0
+"""Anchors wanted through the thickness of thin parts (adaptive anchor sampling, :func:`select_anchors`)."""
+MAX_ANCHOR_REFINEMENT = 4.0
+"""Thin parts get anchors at most this many times closer together than the uniform spacing."""
 GPU_LANES_PER_ANCHOR = 32
 """Threads (one warp) that gather an anchor's ~40-60 half-edges on a GPU (settings.lanes_per_anchor)."""
 
@@ -260,6 +269,22 @@ class AnchorNetwork:
     def count(self) -> int:
         return int(len(self.anchors))
 
+    def fabric_sums(self, weights: np.ndarray) -> np.ndarray:
+        """Per anchor (Σ w L)² / ‖Σ w L d⊗d⊗d⊗d‖² · (1/5), (N,) m: the Σ w L that the least-squares fit of the
+        network's affine stiffness tensor to an isotropic one divides by (module docstring).  Equal to Σ w L
+        when an anchor's springs spread evenly over all directions; larger where they lie in a thin part's plane
+        or along its axis (the network is stiffer along those directions than the trace says)."""
+        n = self.count
+        d = self.anchors[self.springs[:, 1]] - self.anchors[self.springs[:, 0]]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        wl = weights * self.rest_length
+        quartic = np.einsum("si,sj,sk,sl->sijkl", d, d, d, d).reshape(len(d), 81) * wl[:, None]
+        A = np.zeros((n, 81))
+        np.add.at(A, self.springs[:, 0], quartic)
+        np.add.at(A, self.springs[:, 1], quartic)
+        swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
+        return 5.0 * np.einsum("ij,ij->i", A, A) / np.maximum(swl, 1e-300)
+
     def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""
         n = self.count
@@ -320,40 +345,73 @@ def fill_solid(body: Body, target_points: int, max_points: int) -> tuple[np.ndar
     return pts, np.full(len(pts), volume / len(pts))
 
 
-def select_anchors(points: np.ndarray, count: int, pinned: np.ndarray | None = None) -> np.ndarray:
+def select_anchors(points: np.ndarray, count: int, pinned: np.ndarray | None = None,
+                   point_volume: float | None = None, thickness: np.ndarray | None = None,
+                   across: float = ANCHORS_ACROSS_THIN) -> np.ndarray:
     """Indices into ``points`` of ``count`` anchors: voxel down-sampling, then farthest-point order.
 
-    When ``pinned`` (bool mask of clamped points) is given and non-empty, the clamped region
-    gets anchors in proportion to its share of the points (at least 4 when it has them).
+    points: (F, 3) m fill points; pinned: (F,) bool, clamped points; point_volume: m³ each; thickness: (F,) m,
+    the local thickness of the part each point belongs to (:func:`~.sampling.thickness_at`).
+    With ``thickness``, the sampling is adaptive: where a part is thinner than ``across`` uniform anchor
+    spacings, the wanted spacing shrinks in proportion (to at most :data:`MAX_ANCHOR_REFINEMENT` times finer), so
+    a trunk, a leaf or a slender bar gets about ``across`` anchors through its thickness when the count allows
+    (a bending part of one or two anchors' thickness bends far too easily or not at all).
+    The clamped region gets anchors only where it meets free material (within three anchor spacings of it; the
+    rest of a clamp holds nothing), in proportion to that volume (at least 4 when it has them).
     """
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     count = min(int(count), n)
+    vol = float(point_volume) if point_volume else None
 
     def thin(idx: np.ndarray, k: int) -> np.ndarray:
         if k <= 0 or len(idx) == 0:
             return np.zeros(0, dtype=np.int64)
         sub = pts[idx]
-        if len(idx) > 3 * k:
-            ext = np.ptp(sub, axis=0)
-            occupied_volume = max(float(np.prod(np.maximum(ext, 1e-12))), 1e-30)
-            voxel = (occupied_volume / (3.0 * k)) ** (1.0 / 3.0)
+        ext = np.ptp(sub, axis=0)
+        occupied = len(idx) * vol if vol else max(float(np.prod(np.maximum(ext, 1e-12))), 1e-30)
+        uniform = (occupied / k) ** (1.0 / 3.0)
+        if len(idx) > 8 * k:
+            voxel = 0.5 * uniform if thickness is not None else (occupied / (3.0 * k)) ** (1.0 / 3.0)
             cand = voxel_downsample(sub, voxel)
-            # the bounding box over-estimates the volume of non-convex solids: shrink until enough
-            while len(cand) < k:
+            while len(cand) < 2 * k:  # the volume over-estimates sparse clouds: shrink until enough
                 voxel *= 0.7
                 cand = voxel_downsample(sub, voxel)
             idx = idx[cand]
             sub = pts[idx]
-        return idx[farthest_point_sampling(sub, k)]
+        spacing = None
+        if thickness is not None:
+            spacing = np.clip(thickness[idx] / (across * uniform), 1.0 / MAX_ANCHOR_REFINEMENT, 1.0)
+        return idx[farthest_point_sampling(sub, k, spacing=spacing)]
 
     if pinned is None or not np.any(pinned) or np.all(pinned):
         return thin(np.arange(n), count)
-    pin_idx = np.flatnonzero(pinned)
     free_idx = np.flatnonzero(~pinned)
-    n_pin = int(round(count * len(pin_idx) / n))
+    pin_idx = np.flatnonzero(pinned)
+    from scipy.spatial import cKDTree
+
+    uniform = (len(free_idx) * (vol or 1.0) / max(count, 1)) ** (1.0 / 3.0) if vol else None
+    if uniform:
+        near, _ = cKDTree(pts[free_idx]).query(pts[pin_idx], distance_upper_bound=3.0 * uniform)
+        pin_idx = pin_idx[np.isfinite(near)] if np.isfinite(near).sum() >= 4 else pin_idx
+    n_pin = int(round(count * len(pin_idx) / (len(pin_idx) + len(free_idx))))
     n_pin = min(max(n_pin, min(4, len(pin_idx))), len(pin_idx), count - 1)
     return np.concatenate([thin(pin_idx, n_pin), thin(free_idx, count - n_pin)])
+
+
+def _springs_inside(anchors: np.ndarray, springs: np.ndarray, fill: np.ndarray, fill_spacing: float) -> np.ndarray:
+    """(S,) bool: springs whose segment stays inside the solid - points at ¼, ½ and ¾ of it within one fill spacing
+    of a fill point.  A spring through the air between two parts (two leaves, a trunk and the pot's rim) would
+    join what the solid does not."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(fill)
+    a, b = anchors[springs[:, 0]], anchors[springs[:, 1]]
+    ok = np.ones(len(springs), dtype=bool)
+    for t in (0.25, 0.5, 0.75):
+        d, _ = tree.query(a + t * (b - a), distance_upper_bound=fill_spacing)
+        ok &= np.isfinite(d)
+    return ok
 
 
 def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None = None,
@@ -379,7 +437,9 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
         pinned_fill = pinned_fill | scenario.pinned_mask(fill)
     if len(fill) < 2:
         raise UserError("the solid has fewer than 2 sample points; a spring-mass network needs at least 2 anchors")
-    a_idx = select_anchors(fill, settings.anchors, pinned_fill)
+    fill_spacing = float(np.mean(fvol)) ** (1.0 / 3.0)
+    thickness = thickness_at(fill, fill_spacing) if body.mesh is not None else None
+    a_idx = select_anchors(fill, settings.anchors, pinned_fill, point_volume=float(np.mean(fvol)), thickness=thickness)
     anchors = fill[a_idx]
     n = len(anchors)
     if n < settings.anchors:
@@ -414,6 +474,11 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
     springs = np.stack([lo[first], hi[first]], axis=1).astype(np.int64)
     rank = rank[first].astype(np.int64)
+    if body.mesh is not None:  # no springs through the air between parts; every anchor keeps its nearest three
+        inside = _springs_inside(anchors, springs, fill, fill_spacing) | (rank < 3)
+        if not np.all(inside):
+            warnings.append(f"{int((~inside).sum())} of {len(springs)} springs would cross empty space and were left out")
+        springs, rank = springs[inside], rank[inside]
     rest = np.linalg.norm(anchors[springs[:, 1]] - anchors[springs[:, 0]], axis=1)
     if np.any(rest <= 0):
         raise UserError("two anchors coincide (duplicate points in the body); remove duplicate points")
@@ -432,7 +497,7 @@ def anchor_positions(body: Body, anchors: int = DEFAULT_ANCHORS, scenario: Scena
 def stiffness_from_youngs_modulus(network: AnchorNetwork, E: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
     """Per-anchor stiffness k (N_a,) newtons that makes the network's modulus E (N_a,) Pa (module docstring)."""
     w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl, _ = network.spring_sums(w)
+    swl = network.fabric_sums(w)
     if np.any(swl <= 0):
         raise UserError("the softness weakens every spring of some anchor to zero; lower the softness η")
     return settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * np.asarray(E, np.float64) * network.volume / swl
@@ -441,7 +506,7 @@ def stiffness_from_youngs_modulus(network: AnchorNetwork, E: np.ndarray, setting
 def youngs_modulus_from_stiffness(network: AnchorNetwork, k: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
     """Inverse of :func:`stiffness_from_youngs_modulus`: the modulus (N_a,) Pa a stiffness vector stands for."""
     w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl, _ = network.spring_sums(w)
+    swl = network.fabric_sums(w)
     return np.asarray(k, np.float64) * swl / (settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * network.volume)
 
 
@@ -484,7 +549,7 @@ class SpringMassSimulation(Simulation):
         else:
             self.stiffness = stiffness_from_youngs_modulus(net, net.E, settings)
             self.youngs_modulus = net.E.copy()
-        _, sl = net.spring_sums(self.spring_weight)
+        sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
         self.spring_kappa = self._kappa(self.stiffness)
         # class yield stress (von Mises classes): per anchor
