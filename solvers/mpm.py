@@ -66,19 +66,32 @@ class _Tuning:
 
 
 # ------------------------------------------------------------------------------------------ settings
+DEFAULT_CELLS_ACROSS = 32
+"""Grid cells across a mesh body's largest extent by default."""
+DEFAULT_CELLS_ACROSS_THINNEST = 4
+"""Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: the bending of a bar four cells
+thick is within a few per cent of the continuum's)."""
+AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
+"""Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
+
+
 @dataclass
 class MPMSettings:
     """Numerical settings of the MPM solver (SI units).
 
     dx: grid cell size in metres; ``None`` = for a mesh, the finer of the body's largest extent / ``cells_across``
-        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, but no
-        finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
+        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, the
+        latter no finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
         ``particles_per_cell_axis`` × the point spacing.
-    cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None).
+    cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None); ``None`` =
+        :data:`DEFAULT_CELLS_ACROSS`.
     cells_across_thinnest: grid cells across the thinnest parts of a mesh body (when ``dx`` is None): a slender
         bar, a trunk or a leaf bends as the continuum does only with several cells across it
-        (docs/fidelity.md measures how many).
-    auto_max_particles: the particle budget of the automatic ``dx``.
+        (docs/fidelity.md measures how many); 0 = the largest extent alone decides; ``None`` =
+        :data:`DEFAULT_CELLS_ACROSS_THINNEST` when ``cells_across`` is not given either (the bake default),
+        0 when it is (a caller that asks for N cells across gets N cells across, as the demo and tests do).
+    auto_max_particles: the particle budget of the automatic ``dx``; ``None`` = :data:`AUTO_MAX_PARTICLES`
+        of the device (a GPU affords ten times a CPU's particles in the same wall time).
     particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
         particle volume = cell volume / particles per cell.
     jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
@@ -115,9 +128,9 @@ class MPMSettings:
     """
 
     dx: Optional[float] = None
-    cells_across: int = 32
-    cells_across_thinnest: int = 4
-    auto_max_particles: int = 2_000_000
+    cells_across: Optional[int] = None
+    cells_across_thinnest: Optional[int] = None
+    auto_max_particles: Optional[int] = None
     particles_per_cell_axis: int = 2
     jitter: float = 0.0
     seed: int = 0
@@ -151,7 +164,17 @@ class MPMSettings:
             self.dx = positive("dx", self.dx)
         if self.max_dt is not None:
             self.max_dt = positive("max_dt", self.max_dt)
-        for name in ("cells_across", "cells_across_thinnest", "auto_max_particles", "particles_per_cell_axis",
+        if self.cells_across_thinnest is None:
+            self.cells_across_thinnest = DEFAULT_CELLS_ACROSS_THINNEST if self.cells_across is None else 0
+        if self.cells_across is None:
+            self.cells_across = DEFAULT_CELLS_ACROSS
+        self.cells_across_thinnest = int(self.cells_across_thinnest)
+        if self.cells_across_thinnest < 0:
+            raise UserError(f"MPM setting 'cells_across_thinnest' must be 0 (off) or positive, got "
+                            f"{self.cells_across_thinnest}")
+        if self.auto_max_particles is not None:
+            self.auto_max_particles = positive("auto_max_particles", self.auto_max_particles, integer=True)
+        for name in ("cells_across", "particles_per_cell_axis",
                      "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
             setattr(self, name, positive(name, getattr(self, name), integer=True))
         self.cfl = positive("cfl", self.cfl)
@@ -449,14 +472,19 @@ class MPMSimulation(Simulation):
         s = self.settings
         extent = float(np.max(np.asarray(mesh.extents, dtype=np.float64)))
         thin = thinnest_part(mesh)
-        dx = min(extent / s.cells_across, thin / s.cells_across_thinnest)
+        dx = coarse = extent / s.cells_across
+        self.thinnest_part = thin
+        if not s.cells_across_thinnest or thin / s.cells_across_thinnest >= coarse:
+            return coarse
+        dx = thin / s.cells_across_thinnest
+        budget = s.auto_max_particles or AUTO_MAX_PARTICLES["cuda" if str(self.device).startswith("cuda") else "cpu"]
         volume = float(mesh.volume) if mesh.is_watertight and mesh.volume > 0 else float(np.prod(mesh.extents))
-        budget_dx = s.particles_per_cell_axis * (volume / s.auto_max_particles) ** (1.0 / 3.0)
-        if dx < budget_dx:
-            dx = budget_dx
+        budget_dx = s.particles_per_cell_axis * (volume / budget) ** (1.0 / 3.0)
+        if dx < budget_dx:  # the budget limits only the refinement for thin parts, never the extent's grid
+            dx = min(budget_dx, coarse)
             self.warnings.append(f"MPM: the thinnest parts ({thin * 1000:.3g} mm) get only {thin / dx:.1f} cells "
                                  f"across within the particle budget (settings auto_max_particles = "
-                                 f"{s.auto_max_particles:,}); their bending is resolved coarsely - give dx or a "
+                                 f"{budget:,}); their bending is resolved coarsely - give dx or a "
                                  "larger budget (a GPU affords millions of particles)")
         self.thinnest_part = thin
         return dx

@@ -43,10 +43,9 @@ _LBS = [("200 cubature points", {"cubature_points": 200}, False, "fast"),
         ("500 cubature points", {}, True, "fast"),
         ("1500 cubature points", {"cubature_points": 1500}, False, "fast"),
         ("500 points, 1 ms steps", {"max_dt": 1e-3}, False, "fast")]
-_MPM_BAR = [("bake default (32 cells across 0.5 m)", {}, True, "fast"),
-            ("2 cells across the thickness", {"dx": 0.01}, False, "fast"),
+_MPM_BAR = [("2 cells across the thickness", {"dx": 0.01}, False, "full"),
             ("3 cells across the thickness", {"dx": 0.02 / 3}, False, "full"),
-            ("4 cells across the thickness", {"dx": 0.005}, False, "full"),
+            ("bake default (4 cells across the thinnest part)", {}, True, "full"),
             ("8 cells across the thickness", {"dx": 0.0025}, False, "full")]
 LADDERS = {
     "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
