@@ -18,7 +18,7 @@ from unipixie.core.errors import UserError
 from unipixie.training import independent_fem as fem
 
 MATERIAL = {"E": 1.0e5, "nu": 0.3, "density": 1000.0}
-DROP_MESH_BOUND = 0.0
+DROP_MESH_BOUND = 0.005
 """m: the canonical drop's rebound peak moves by less than this from 4 to 8 cells a side (hard law)."""
 
 
@@ -315,7 +315,7 @@ def test_linear_module_mass_is_exact():
 @pytest.mark.slow
 def test_drop_converges_between_two_meshes():
     """The canonical drop under the hard law at 4 and 8 cells a side: the rebound peak of the centre of mass
-    and the contact duration agree within the stated bounds (measured: see benchmarks/referee_fem.json)."""
+    and the contact duration agree within the stated bounds (measured 3.4 mm and 0 ms: benchmarks/referee_fem.json)."""
     from unipixie.training.independent_fem import study
 
     coarse, fine = study.convergence_study("drop", [{"cells": 4, "safety": 0.25}, {"cells": 8, "safety": 0.25}])

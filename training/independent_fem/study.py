@@ -203,30 +203,39 @@ def reference_study(drop_levels: Sequence[dict] = DROP_LEVELS, bar_levels: Seque
         studies[f"drop/{law}"] = convergence_study("drop", drop_levels, law, log=log)
     for case in ("cantilever_z", "cantilever_y"):
         studies[case] = convergence_study(case, bar_levels, log=log)
+    return summarise(studies)
+
+
+def summarise(studies: dict) -> dict:
+    """The JSON of :func:`reference_study` from its studies ({"drop/<law>" or case: convergence_study(...)}; each
+    with at least two levels)."""
     scenes: dict = {}
     convergence: dict = {}
+    best_drop: dict = {}
     for key, levels in studies.items():
         if key.startswith("drop"):
             mesh_levels = [i for i, lv in enumerate(levels) if lv["level"].get("safety", 0.25) == 0.25]
-            step_levels = [i for i, lv in enumerate(levels) if lv["level"]["cells"] == levels[mesh_levels[-1]]["level"]["cells"]]
+            cells = [lv["level"]["cells"] for lv in levels]
+            stepped = max((c for c in cells if cells.count(c) > 1), default=cells[mesh_levels[-1]])
+            step_levels = [i for i, c in enumerate(cells) if c == stepped]
             metrics = ("rebound_peak", "contact_duration")
             conv = {m: {"mesh": change_between_finest(levels, m, mesh_levels[-1], mesh_levels[-2]),
                         "step": (change_between_finest(levels, m, step_levels[-1], step_levels[0])
                                  if len(step_levels) > 1 else None)} for m in metrics}
-            best = levels[step_levels[-1]]["figures"]
+            best = levels[mesh_levels[-1]]["figures"]
         else:
             metrics = ("tip_sag", "frequency")
             conv = {m: {"mesh": change_between_finest(levels, m)} for m in metrics}
             best = levels[-1]["figures"]
         convergence[key] = conv
         values = {m: best[m] for m in metrics}
+        if key.startswith("drop"):
+            best_drop[key] = values
         if key == "drop/hard":
             scenes["drop"] = values
         elif not key.startswith("drop"):
             scenes[key] = values
-    return {"scenes": scenes, "scenes_by_contact_law": {k.split("/")[1]: {m: studies[k][-1]["figures"][m] for m in
-                                                                           ("rebound_peak", "contact_duration")}
-                                                        for k in studies if k.startswith("drop")},
+    return {"scenes": scenes, "scenes_by_contact_law": {k.split("/")[1]: best_drop[k] for k in best_drop},
             "convergence": convergence, "studies": studies,
             "simulator": "unipixie.training.independent_fem (drop: linear tets, fixed-corotated, RK4; bars: "
                          "quadratic tets, linear elasticity)",
