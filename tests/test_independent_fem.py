@@ -18,6 +18,8 @@ from unipixie.core.errors import UserError
 from unipixie.training import independent_fem as fem
 
 MATERIAL = {"E": 1.0e5, "nu": 0.3, "density": 1000.0}
+DROP_MESH_BOUND = 0.005
+"""m: the canonical drop's rebound peak moves by less than this from 4 to 8 cells a side (hard law)."""
 
 
 def _com(model, x):
@@ -205,3 +207,120 @@ def test_validation_cases_are_well_formed():
     with pytest.raises(UserError, match="unknown validation case"):
         validate.select_cases("none_throw,bogus")
     assert [c.name for c in validate.select_cases("quick")] == list(validate.QUICK)
+
+
+# ------------------------------------------------------------------- the referee: contact laws and convergence
+def _dropped_cube(law, damping=0.0, height=0.05, size=0.1):
+    """A 0.1 m cube (2 cells a side) released at rest with its lower face ``height`` m above the ground."""
+    settings = fem.FEMSettings(contact_law=law, contact_damping_ratio=damping)
+    mesh = fem.box_tet_mesh((size, size, size), centre=(0.0, 0.0, height + size / 2), spacing=size / 2)
+    sc = {"gravity": [0.0, 0.0, -9.81], "ground": {"height": 0.0}, "initial_velocity": [0.0, 0.0, 0.0]}
+    return fem.FEMModel(mesh, MATERIAL, sc, settings=settings)
+
+
+def _energy_above_rest(model, x, v, size=0.1):
+    return model.energy(x, v)["total"] - model.mass.sum() * 9.81 * size / 2
+
+
+def test_free_fall_is_the_parabola_under_the_hard_law_too():
+    model = _dropped_cube("hard", height=2.0)
+    times = np.linspace(0.0, 0.3, 4)
+    x = model.run(times)
+    com = np.array([_com(model, xi)[2] for xi in x])
+    np.testing.assert_allclose(com - com[0], -0.5 * 9.81 * times ** 2, atol=1e-6)
+
+
+def test_the_contact_laws_differ_as_stated():
+    """The hard law never lets a node below the ground and loses energy at the impact; the undamped penalty
+    spring keeps much more (measured 0.59 against 0.93 of the energy above rest after the bounce: the rest goes
+    into the coarse mesh's fastest vibrations, which RK4 damps)."""
+    times = np.linspace(0.0, 0.22, 45)  # the impact at 0.10 s, in the air again by 0.13 s
+    kept = {}
+    for law in ("hard", "penalty"):
+        model = _dropped_cube(law)
+        x = model.run(times)
+        e0 = _energy_above_rest(model, model.X, model.v0)
+        kept[law] = _energy_above_rest(model, *model.final_state) / e0
+        if law == "hard":
+            assert np.min(x[:, :, 2]) >= -1e-12  # no penetration at any frame
+            assert np.min(model.final_state[0][:, 2]) >= -1e-12
+        else:
+            assert np.min(x[:, :, 2]) < 0.0  # the penalty spring works by penetrating
+    assert kept["hard"] < 0.8, kept
+    assert kept["penalty"] > 0.85, kept
+    assert kept["penalty"] > kept["hard"] + 0.15, kept
+
+
+def test_the_damped_penalty_default_is_unchanged_and_loses_energy():
+    assert fem.FEMSettings().contact_law == "penalty" and fem.FEMSettings().contact_damping_ratio == 1.0
+    model = _dropped_cube("penalty", damping=1.0)
+    model.run(np.linspace(0.0, 0.22, 45))
+    kept = _energy_above_rest(model, *model.final_state) / _energy_above_rest(model, model.X, model.v0)
+    assert kept < 0.95
+
+
+@pytest.mark.slow
+def test_hard_contact_friction_stops_a_slide():
+    """Coulomb friction under the hard law: the stopping distance v²/(2μg) (about 25 s on a loaded 2-core CPU)."""
+    mu, v0, g = 0.5, 1.0, 9.81
+    model = fem.FEMModel(fem.box_tet_mesh((0.1, 0.1, 0.1), centre=(0.0, 0.0, 0.05), spacing=0.05),
+                         {"E": 1.0e6, "nu": 0.3, "density": 1000.0},
+                         {"gravity": [0.0, 0.0, -g], "ground": {"height": 0.0}, "initial_velocity": [v0, 0.0, 0.0]},
+                         [f"ground_friction:mu={mu}"], fem.FEMSettings(contact_law="hard"))
+    t_stop = v0 / (mu * g)
+    x = model.run(np.linspace(0.0, 2.0 * t_stop, 41))
+    cx = np.array([_com(model, xi)[0] for xi in x])
+    assert cx[-1] - cx[0] == pytest.approx(v0 ** 2 / (2 * mu * g), rel=0.10)
+    assert np.min(x[:, :, 2]) >= -1e-12
+
+
+def test_unknown_contact_law_is_a_user_error():
+    with pytest.raises(UserError, match="contact law"):
+        fem.FEMSettings(contact_law="sticky")
+
+
+def test_clamped_bar_sag_and_frequency_against_euler_bernoulli():
+    """Quadratic tetrahedra, 2 cells through the thickness: tip sag and first frequency of the canonical bar
+    (across its thin side) within 2 % of Euler–Bernoulli, which ignores shear and the clamp's 3-D stiffening."""
+    from unipixie.training.independent_fem import study
+
+    f = study.cantilever_figures("z", 2)
+    assert f["tip_sag"] == pytest.approx(f["euler_bernoulli_sag"], rel=0.02)
+    assert f["frequency"] == pytest.approx(f["euler_bernoulli_frequency"], rel=0.02)
+    assert f["euler_bernoulli_sag"] == pytest.approx(8.98e-3, rel=2e-3)
+
+
+def test_clamped_bar_converges_in_the_mesh():
+    """Refining the bar (1 → 2 cells through the thickness, quadratic tetrahedra) moves the wide-side sag by
+    under 0.5 mm and the thin-side sag by under 0.5 mm too (the diagnosis' noise level)."""
+    from unipixie.training.independent_fem import study
+
+    for direction in ("z", "y"):
+        coarse, fine = study.convergence_study(f"cantilever_{direction}", [{"across": 1}, {"across": 2}])
+        assert abs(fine["figures"]["tip_sag"] - coarse["figures"]["tip_sag"]) < 5e-4
+        assert fine["figures"]["dofs"] > coarse["figures"]["dofs"]
+
+
+def test_linear_module_mass_is_exact():
+    from unipixie.training.independent_fem import linear
+
+    mesh = fem.box_tet_mesh((0.2, 0.1, 0.1), spacing=0.05)
+    K, M = linear.assemble(linear.quadratic_mesh(mesh), {"E": 1e5, "nu": 0.3, "density": 800.0})
+    ones = np.zeros(M.shape[0])
+    ones[0::3] = 1.0
+    assert ones @ M @ ones == pytest.approx(800.0 * 0.2 * 0.1 * 0.1, rel=1e-12)  # total mass
+    assert np.abs(K @ ones).max() < 1e-6 * abs(K).max()  # a rigid translation stores no energy
+
+
+@pytest.mark.slow
+def test_drop_converges_between_two_meshes():
+    """The canonical drop under the hard law at 4 and 8 cells a side: the rebound peak of the centre of mass
+    and the contact duration agree within the stated bounds (measured 3.4 mm and 0 ms: benchmarks/referee_fem.json)."""
+    from unipixie.training.independent_fem import study
+
+    coarse, fine = study.convergence_study("drop", [{"cells": 4, "safety": 0.25}, {"cells": 8, "safety": 0.25}])
+    a, b = coarse["figures"], fine["figures"]
+    assert a["lowest"] >= -1e-12 and b["lowest"] >= -1e-12
+    assert abs(a["first_contact"] - math.sqrt(2 * 0.1 / 9.81)) <= 1.5e-3
+    assert abs(a["rebound_peak"] - b["rebound_peak"]) < DROP_MESH_BOUND
+    assert abs(a["contact_duration"] - b["contact_duration"]) <= 0.004

@@ -25,11 +25,15 @@ Model
   ω_max² and γ_max are the largest eigenvalues of M⁻¹K and M⁻¹C at rest (power iteration on the
   force function).  The default ``safety`` = 0.25 keeps RK4's own dissipation of the slowest
   vibration below 0.5 % over a second (|R(iωΔt)|² = 1 − (ωΔt)⁶/72 + …).  Plastic flow and
-  friction are applied after each step (operator splitting).
-* **Ground.**  Penalty contact at the plane z = h on every node: normal force
-  m_a (k (h − z) − c v_z), never pulling, with k = ω_max² and c = 2ζ ω_max (ζ =
-  ``contact_damping_ratio``) — the contact is exactly as stiff as the stiffest element, so it does
-  not shorten the step, and sinks ~0.1 mm under a block's weight.
+  friction (and the hard contact's projection) are applied after each step (operator splitting).
+* **Ground.**  Two laws, chosen by name (``FEMSettings.contact_law``), so that no single contact law
+  is the truth.  ``"penalty"`` (the default): on every node a normal force
+  m_a (k (h − z) − c v_z), never pulling, with k = ``contact_stiffness`` × ω_max² and c = 2ζ √k (ζ =
+  ``contact_damping_ratio``, default 1) — at the default stiffness the contact is exactly as stiff
+  as the stiffest element, so it barely shortens the step, and sinks ~0.1 mm under a block's weight;
+  ζ = 0 keeps what the springs store.  ``"hard"``: an inelastic projection after each step — a node
+  below the plane is put back on it and its downward velocity zeroed (never any penetration at the
+  frames; the energy of the touching nodes' normal motion is lost).
 * **Clamp.**  Nodes inside the scenario's ``pinned_box`` never move.
 
 Effects (the spec's vocabulary and parameter meanings, implemented here independently)
@@ -41,7 +45,8 @@ Cauchy stress σ_v = 2η D, D = sym(∇v) (first Piola 2η D cof F; zero for rig
 Hencky strain of F_e is returned to the yield surface √(3/2)‖dev τ‖ ≤ σ_y with τ = 2μ ε + λ tr ε
 (the uniaxial yield stress is σ_y); the plastic part is permanent.  ``ground_friction`` μ: after
 each step the tangential velocity of every node in contact is reduced by μ × its normal impulse
-per unit mass over the step, to zero at most (Coulomb with sticking).  ``stiffness_region``
+per unit mass over the step (under the hard law: the normal velocity the projection removed), to zero at
+most (Coulomb with sticking).  ``stiffness_region``
 factor, box: E (hence μ and λ) of the elements whose centroid lies in the box multiplied by
 the factor.
 
@@ -64,12 +69,14 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..core.errors import SimulationDiverged, UserError
+from ...core.errors import SimulationDiverged, UserError
 
 MEASUREMENT_FORMAT = "unipixie.measurement/1"
 EFFECT_NAMES = ("linear_drag", "quadratic_drag", "material_damping", "ground_friction", "plasticity", "wind",
                 "stiffness_region")
 """The spec's effect vocabulary (shared/specs/measurement-format.md §2)."""
+CONTACT_LAWS = ("penalty", "hard")
+"""The ground's contact laws (:class:`FEMSettings`.contact_law); neither is the truth, so a referee reports both."""
 RK4_STABILITY = 2.5
 """|λ Δt| below which classical RK4 is stable for eigenvalues λ in the closed left half-plane (≈ 2.78 on
 the real axis, 2.83 on the imaginary axis)."""
@@ -130,8 +137,9 @@ def boundary_faces(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def box_tet_mesh(extents: Sequence[float], centre: Sequence[float] = (0.0, 0.0, 0.0), spacing: float = 0.04,
                  ) -> TetMesh:
-    """A structured tetrahedral mesh of an axis-aligned box (metres): a lattice of about ``spacing``
-    cut into six tetrahedra per cell (Kuhn triangulation around the cell's main diagonal)."""
+    """A structured tetrahedral mesh of an axis-aligned box (metres): a lattice of about ``spacing`` (m, one
+    number or one per axis) cut into six tetrahedra per cell (Kuhn triangulation around the cell's main
+    diagonal).  Finer meshes of the same box: a smaller ``spacing``."""
     ext = np.asarray(extents, dtype=np.float64)
     cells = np.maximum(np.round(ext / spacing).astype(int), 1)
     axes = [np.linspace(-e / 2, e / 2, c + 1) for e, c in zip(ext, cells)]
@@ -230,13 +238,30 @@ class FEMSettings:
     """Numerical settings.
 
     safety: fraction of the RK4 stability limit used as the step (accuracy of the slow modes).
-    contact_damping_ratio: ζ of the penalty contact (1 = critically damped node contact).
+    contact_law: the ground's law, one of :data:`CONTACT_LAWS`: ``"penalty"`` (a spring per node,
+    m_a (k d − c v_z), never pulling) or ``"hard"`` (inelastic projection after each step: a node below
+    the ground is put back on it and its downward velocity is zeroed).
+    contact_damping_ratio: ζ of the penalty contact (1 = critically damped node contact, 0 = an
+    undamped spring that returns what it stores).
+    contact_stiffness: the penalty spring k per unit node mass as a multiple of ω_max² (the stiffest
+    element's own rate); above 1 the contact, not the elements, sets the step.
     max_steps_per_frame: refuse a run that would need more steps per frame interval.
     """
 
     safety: float = 0.25
+    contact_law: str = "penalty"
     contact_damping_ratio: float = 1.0
+    contact_stiffness: float = 1.0
     max_steps_per_frame: int = 200_000
+
+    def __post_init__(self):
+        if self.contact_law not in CONTACT_LAWS:
+            raise UserError(f"unknown contact law {self.contact_law!r}; the laws are {', '.join(CONTACT_LAWS)}")
+        if not (0.0 < self.safety <= 1.0):
+            raise UserError(f"safety must lie in (0, 1], got {self.safety}")
+        if not (self.contact_damping_ratio >= 0.0 and self.contact_stiffness > 0.0):
+            raise UserError("contact_damping_ratio must be 0 or more and contact_stiffness positive, got "
+                            f"{self.contact_damping_ratio}, {self.contact_stiffness}")
 
 
 def _effect_params(effects) -> dict:
@@ -436,10 +461,12 @@ class FEMModel:
         # stability: largest eigenvalues of M⁻¹K and M⁻¹C at rest
         self.omega_max = self._largest_rate(elastic=True)
         self.gamma_max = self._largest_rate(elastic=False) if self.eta > 0 else 0.0
-        self.k_contact = self.omega_max ** 2
-        self.c_contact = 2.0 * self.settings.contact_damping_ratio * self.omega_max
+        self.hard_contact = self.settings.contact_law == "hard"
+        self.k_contact = self.settings.contact_stiffness * self.omega_max ** 2
+        self.c_contact = 2.0 * self.settings.contact_damping_ratio * math.sqrt(self.k_contact)
         # a node on the ground feels the stiffest element and the contact spring (ω² each) and the contact damper
-        rate = (math.sqrt(2.0) * self.omega_max if self.ground is not None else self.omega_max) + self.gamma_max
+        penalty = self.ground is not None and not self.hard_contact
+        rate = (math.sqrt(self.omega_max ** 2 + self.k_contact) if penalty else self.omega_max) + self.gamma_max
         rate = max(rate, 1e-9)
         self.dt_max = self.settings.safety * RK4_STABILITY / rate
 
@@ -472,9 +499,9 @@ class FEMModel:
         return self.G @ stacked
 
     def contact_forces(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(n, 3) N: the ground's penalty force (normal only, never pulling)."""
+        """(n, 3) N: the ground's penalty force (normal only, never pulling; zero under the hard law)."""
         f = np.zeros_like(x)
-        if self.ground is None:
+        if self.ground is None or self.hard_contact:
             return f
         depth = self.ground - x[:, 2]
         on = depth > 0
@@ -576,7 +603,19 @@ class FEMModel:
         a4, c4 = self.acceleration(x4, v4)
         xn = x + dt / 6.0 * (v + 2 * v2 + 2 * v3 + v4)
         vn = v + dt / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-        if self.mu_f > 0 and self.ground is not None:
+        if self.ground is not None and self.hard_contact:
+            below = xn[:, 2] < self.ground
+            if np.any(below):
+                xn = xn.copy()
+                vn = vn.copy()
+                xn[below, 2] = self.ground
+                dv = np.maximum(-vn[below, 2], 0.0)  # the downward normal velocity the ground takes away
+                vn[below, 2] += dv
+                if self.mu_f > 0:
+                    impulse = np.zeros(len(xn))
+                    impulse[below] = self.mass[below] * dv
+                    vn = self._friction(vn, impulse)
+        elif self.mu_f > 0 and self.ground is not None:
             impulse = dt / 6.0 * (c1[:, 2] + 2 * c2[:, 2] + 2 * c3[:, 2] + c4[:, 2])
             vn = self._friction(vn, impulse)
         if self.plastic:
@@ -780,7 +819,8 @@ def make_case(case: Case, settings: Optional[FEMSettings] = None) -> dict:
     clean = model.run(times, surf)
     wall = time.perf_counter() - t0
     stated = dict(truth_material, E=case.E / case.stated_E_scale)
-    truth = {"simulator": "unipixie.training.independent_fem (linear tets, fixed-corotated, RK4, penalty ground)",
+    law = model.settings.contact_law
+    truth = {"simulator": f"unipixie.training.independent_fem (linear tets, fixed-corotated, RK4, {law} ground)",
              "case": case.name, "effects": effects, "true_E": case.E, "stated_E": stated["E"],
              "true_E_over_stated": case.stated_E_scale, "noise_sigma": case.noise, "occlusion": case.occlusion,
              "nodes": int(len(mesh.nodes)), "tets": int(len(mesh.tets)), "dt": float(model.dt_max),
