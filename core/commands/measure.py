@@ -64,22 +64,36 @@ def add_arguments(p):
     add_measurement_arguments(cv)
 
 
-def _check_output(path, force: bool):
+def _check_output(path, force: bool, inputs=()):
+    """The output path, checked before any work: .npz or .csv, not an existing file without --force (a
+    CSV's side-car .json included), not (a link to) an input, writable with room."""
     from pathlib import Path
 
+    from ..atomic_io import check_writable, refuse_overwriting_inputs
     from ..errors import UserError
 
     p = Path(path).expanduser()
     if p.suffix.lower() not in (".npz", ".csv"):
         raise UserError(f"{p}: the output must end in .npz or .csv")
-    if p.exists() and not force:
-        raise UserError(f"{p} exists; use --force to overwrite it")
+    targets = [p] + ([p.with_suffix(".json")] if p.suffix.lower() == ".csv" else [])
+    for t in targets:
+        refuse_overwriting_inputs(t, inputs)
+        if (t.exists() or t.is_symlink()) and not force:
+            raise UserError(f"{t} exists; use --force to overwrite it")
+        check_writable(t)
     return p
 
 
 def _write(m, p):
+    """Write ``m`` to ``p`` (.npz or .csv + side-car .json); returns the path and says what a CSV drops."""
     if p.suffix.lower() == ".csv":
-        return m.save_csv(p)
+        path, dropped = m.save_csv(p)
+        print(f"wrote {p.with_suffix('.json')} (the scenario, point ids, rest positions"
+              f"{', faces' if m.faces is not None else ''}: the side-car the CSV needs)")
+        if dropped:
+            print(f"note: the CSV and its side-car drop the archive key(s) {', '.join(dropped)} (only a .npz holds "
+                  "them)")
+        return path
     return m.save(p)
 
 
@@ -152,7 +166,9 @@ def _show(args) -> int:
 def _convert(args) -> int:
     from .diagnose import load_measurement
 
-    out = _check_output(args.output, args.force)
+    out = _check_output(args.output, args.force, inputs=[args.measurement] + (
+        [args.measurement.with_suffix(".json")] if str(args.measurement).lower().endswith(".csv") else []) + (
+        [args.scenario] if getattr(args, "scenario", None) else []))
     m = load_measurement(args)
     path = _write(m, out)
     print(f"wrote {path}: {m.summary()}")
