@@ -205,7 +205,7 @@ def _fsync_dir(d: Path) -> None:
 
 @contextlib.contextmanager
 def atomic_path(path, *, verify: Optional[Callable[[Path], None]] = None, min_size: int = 1,
-                expected_size: Optional[int] = None) -> Iterator[Path]:
+                expected_size: Optional[int] = None, kind: Optional[str] = None) -> Iterator[Path]:
     """Write ``path`` atomically: the block writes the yielded temporary path; when it ends, the file
     is flushed, checked (at least ``min_size`` bytes, ``expected_size`` if given, :func:`check_file`
     for its extension, then ``verify(tmp)``) and renamed over ``path`` (its real target when ``path``
@@ -230,7 +230,7 @@ def atomic_path(path, *, verify: Optional[Callable[[Path], None]] = None, min_si
         if expected_size is not None and size != expected_size:
             raise UserError(f"cannot write {shown}: the written file is {size} bytes, expected {expected_size} "
                             "(cut off: is the disk full?)")
-        check_file(tmp, real.suffix.lower(), shown=shown)
+        check_file(tmp, kind or real.suffix.lower(), shown=shown)
         if verify is not None:
             verify(tmp)
         os.chmod(tmp, _mode_for(real))
@@ -340,8 +340,9 @@ def save_npz(path, *, compressed: bool = True, **arrays) -> Path:
         if found != names:
             raise UserError(f"cannot write {path}: the archive holds {found}, expected {names}")
 
-    with atomic_path(path, verify=verify) as tmp:
-        (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
+    with atomic_path(path, verify=verify, kind=".npz") as tmp:
+        with open(tmp, "wb") as f:  # a file object: numpy appends ".npz" to a path that lacks it
+            (np.savez_compressed if compressed else np.savez)(f, **arrays)
     return Path(path)
 
 

@@ -446,6 +446,8 @@ def _scenario_from_dict(d: dict, src: str):
         missing = [k for k in ("E", "nu", "density") if k not in mat]
         if missing:
             raise _fail(src, f"scenario key 'material' lacks {', '.join(repr(k) for k in missing)}")
+        if any(isinstance(mat[k], (str, bytes, bool)) for k in ("E", "nu", "density")):
+            raise _fail(src, f"scenario key 'material' must hold numbers (JSON numbers, not text), got {dict(mat)!r}")
         try:
             E, nu, rho = (float(mat[k]) for k in ("E", "nu", "density"))
         except (TypeError, ValueError):

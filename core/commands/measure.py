@@ -6,6 +6,8 @@ from ._common import device as device_type
 from ._common import existing_file
 
 NAME = "measure"
+MIN_SYNTH_POINTS = 8
+"""The fewest tracked points ``measure synth`` makes (the coarsest closed surface of its shapes)."""
 HELP = "make a synthetic measurement with hidden effects, inspect or convert measurement files"
 EXAMPLES = """  unipixie measure synth --out m.npz --effect wind:acceleration=0,0.5,0 --solver mpm --noise 0.001 --occlusion 0.1
   unipixie measure synth --out drag.npz --effect quadratic_drag:k=0.3 --scenario throw --shape cube
@@ -111,6 +113,18 @@ def _synth(args) -> int:
     from ...solvers.warp_runtime import resolve_device
     from .diagnose import parse_settings
 
+    from ..errors import UserError
+
+    if args.points < MIN_SYNTH_POINTS:
+        raise UserError(f"--points {args.points}: a synthetic measurement needs at least {MIN_SYNTH_POINTS} tracked "
+                        "points (the shape's surface vertices)")
+    checks = [("--duration", args.duration, args.duration > 0, "a positive number of seconds"),
+              ("--fps", args.fps, args.fps > 0, "a positive number of instants per second"),
+              ("--noise", args.noise, args.noise >= 0, "0 or more metres"),
+              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)")]
+    for flag, value, ok, what in checks:
+        if not (ok and value == value and abs(value) != float("inf")):
+            raise UserError(f"{flag} {value:g}: expected {what}")
     out = _check_output(args.out, args.force)
     effects = [e for e in args.effect if e.strip().lower() != "none"]
     with Progress(total=1.0, description="synth") as progress:
