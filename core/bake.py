@@ -1295,7 +1295,7 @@ def check_job_outputs(jobs: Sequence[BakeJob]) -> None:
     """Two jobs writing the same object into the same output file would overwrite each other: refuse.
     An output that is its input scene or material file — also through a symbolic link or a hard link —
     is refused too."""
-    from .atomic_io import output_path, refuse_overwriting_inputs
+    from .atomic_io import output_path, refuse_overwriting_inputs, same_file
 
     seen: dict = {}
     for j in jobs:
@@ -1304,10 +1304,10 @@ def check_job_outputs(jobs: Sequence[BakeJob]) -> None:
             raise UserError(f"jobs '{seen[key].describe()}' and '{j.describe()}' both write object '{j.object}' into "
                             f"{j.out}; put a placeholder such as {{alpha}}, {{frames}} or {{job}} in the output name")
         seen[key] = j
-        try:
-            refuse_overwriting_inputs(j.out, [j.scene], what="output")
-        except UserError as exc:
-            raise UserError(f"job '{j.describe()}': {exc}; choose another --out") from None
+        if same_file(j.out, j.scene):
+            how = " (through a link)" if os.path.abspath(j.out) != os.path.abspath(j.scene) else ""
+            raise UserError(f"job '{j.describe()}' would overwrite its input scene {j.scene}{how}: the output {j.out} "
+                            "is the same file; choose another --out")
         inputs = [getattr(j.material, a, None) for a in ("path", "features")] if j.material is not None else []
         refuse_overwriting_inputs(j.out, [i for i in inputs if i], what="output")
 
