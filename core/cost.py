@@ -105,6 +105,8 @@ class CostEstimate:
 
     @property
     def total_substeps(self) -> float:
+        if not math.isfinite(self.substep):
+            return 0.0  # frames only: the frame limit decides
         return self.simulations * self.substeps_per_simulation
 
     @property
@@ -112,6 +114,8 @@ class CostEstimate:
         return 12.0 * self.frames * self.points  # float32 positions
 
     def describe(self) -> str:
+        if not math.isfinite(self.substep):  # frames only (the material is not known yet)
+            return self.what
         sims = f"{self.simulations} simulations × " if self.simulations > 1 else ""
         per_frame = self.substeps_per_simulation / max(self.frames - 1, 1)
         return (f"{self.what}: {sims}{self.frames - 1:,} frame steps ({self.duration:.3g} s simulated) × about "

@@ -48,6 +48,8 @@ def save_blend(path, expect_objects: Optional[Iterable[str]] = None, quiet: bool
         _reopen_check(tmp, shown, expect)
 
     with atomic_path(path, verify=verify) as tmp:
+        backup = tmp.with_name(tmp.name + "1")  # Blender would keep the empty placeholder as "<name>1"
+        tmp.unlink()
         try:
             if quiet:
                 from .scene_import import quiet_blender_output
@@ -59,4 +61,9 @@ def save_blend(path, expect_objects: Optional[Iterable[str]] = None, quiet: bool
         except RuntimeError as exc:  # Blender reports I/O errors as "Error: No space left on device"
             text = str(exc).strip().removeprefix("Error:").strip() or "Blender could not save the file"
             raise UserError(f"cannot write {shown}: {text}") from None
+        finally:
+            if backup.exists():
+                backup.unlink()
+            if not tmp.exists():  # Blender failed before creating it: let the check below say so
+                tmp.touch()
     return Path(path)

@@ -87,7 +87,15 @@ def _check_output(path, force: bool, inputs=()):
 
 
 def _write(m, p):
-    """Write ``m`` to ``p`` (.npz or .csv + side-car .json); returns the path and says what a CSV drops."""
+    """Write ``m`` to ``p`` (.npz or .csv + side-car .json), locked against a second run writing it at the same
+    time; returns the path and says what a CSV drops."""
+    from ..atomic_io import OutputLock
+
+    with OutputLock(p, "output"):
+        return _write_unlocked(m, p)
+
+
+def _write_unlocked(m, p):
     if p.suffix.lower() == ".csv":
         path, dropped = m.save_csv(p)
         print(f"wrote {p.with_suffix('.json')} (the scenario, point ids, rest positions"
