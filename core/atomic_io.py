@@ -340,9 +340,16 @@ def save_npz(path, *, compressed: bool = True, **arrays) -> Path:
         if found != names:
             raise UserError(f"cannot write {path}: the archive holds {found}, expected {names}")
 
+    from numpy.lib import format as npy_format
+
+    compression = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
     with atomic_path(path, verify=verify, kind=".npz") as tmp:
-        with open(tmp, "wb") as f:  # a file object: numpy appends ".npz" to a path that lacks it
-            (np.savez_compressed if compressed else np.savez)(f, **arrays)
+        # numpy.savez's own layout (one NAME.npy per array, zip64), written with context managers so that a
+        # failure (a full disk) closes the archive here instead of in a garbage-collector warning
+        with open(tmp, "wb") as f, zipfile.ZipFile(f, mode="w", compression=compression, allowZip64=True) as z:
+            for name, value in arrays.items():
+                with z.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    npy_format.write_array(member, np.asanyarray(value), allow_pickle=False)
     return Path(path)
 
 

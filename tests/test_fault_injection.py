@@ -6,6 +6,7 @@ false verdict.  All fast (no simulation runs)."""
 from __future__ import annotations
 
 import errno
+import importlib.util
 import json
 import os
 import signal
@@ -51,12 +52,11 @@ def _falling_cube(frames: int = 20, fps: float = 50.0, **scenario) -> Measuremen
 
 # --------------------------------------------------------------------------- full disk (simulated at write time)
 def _enospc_after(nbytes: int):
-    """A ``numpy.savez_compressed`` stand-in that writes ``nbytes`` and then fails as a full disk does."""
+    """A ``numpy.lib.format.write_array`` stand-in that writes ``nbytes`` of an archive member and then fails as a
+    full disk does."""
 
-    def fake(file, *args, **kwargs):
-        f = open(file, "wb") if isinstance(file, (str, os.PathLike)) else file
-        f.write(b"PK\x03\x04" + b"\0" * nbytes)
-        f.flush()
+    def fake(fp, array, *args, **kwargs):
+        fp.write(b"\x93NUMPY" + b"\0" * nbytes)
         raise OSError(errno.ENOSPC, "No space left on device")
 
     return fake
@@ -67,7 +67,7 @@ def test_full_disk_leaves_no_partial_file_and_keeps_the_old_one(tmp_path, monkey
     target = tmp_path / "m.npz"
     m.save(target)
     before = target.read_bytes()
-    monkeypatch.setattr(np, "savez_compressed", _enospc_after(1000))
+    monkeypatch.setattr(np.lib.format, "write_array", _enospc_after(1000))
     with pytest.raises(UserError) as info:
         m.save(target)
     msg = str(info.value)
@@ -87,7 +87,7 @@ def test_full_disk_while_writing_a_material_field(tmp_path, monkeypatch):
     occ[1:3, 1:3, 1:3] = True
     geo = GridGeometry(resolution=4, origin=[0, 0, 0], voxel_size=0.25)
     f = MaterialField.homogeneous(geo, occ, 1e5, 0.3, 1000.0)
-    monkeypatch.setattr(np, "savez_compressed", _enospc_after(50))
+    monkeypatch.setattr(np.lib.format, "write_array", _enospc_after(50))
     with pytest.raises(UserError, match="disk is full"):
         f.save(tmp_path / "material_field_a0.500.npz")
     assert list(tmp_path.iterdir()) == []
@@ -487,3 +487,51 @@ def test_blend_save_on_a_full_disk_leaves_the_old_file(tmp_path):
     assert "Traceback" not in res.stderr and str(out) in res.stderr
     assert out.read_bytes() == b"the previous bake"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["baked.blend", "ok.blend"]
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A real, nearly full 256 KB file system (tmpfs) where the machine allows mounting one (root in a
+    container or VM); skipped elsewhere — the simulated-ENOSPC tests above cover the same paths."""
+    if os.name != "posix" or os.geteuid() != 0:
+        pytest.skip("mounting a small file system needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip("this machine does not allow mounting a tmpfs")
+    try:
+        (mnt / "fill").write_bytes(b"\0" * (236 * 1024))
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def test_a_real_full_disk(full_disk, tmp_path):
+    m = _falling_cube(frames=200)
+    (full_disk / "old.npz").write_bytes(b"old")
+    for write in (lambda: m.save(full_disk / "old.npz"), lambda: m.save_csv(full_disk / "m.csv")):
+        with pytest.raises(UserError, match="disk is full|cut off"):
+            write()
+    assert (full_disk / "old.npz").read_bytes() == b"old"
+    assert sorted(p.name for p in full_disk.iterdir()) == ["fill", "old.npz"]
+    with pytest.raises(UserError, match="not enough free space"):
+        atomic_io.check_writable(full_disk / "baked.blend", 1_000_000)
+    if importlib.util.find_spec("bpy") is None:
+        return
+    scene = tmp_path / "scene.blend"
+    code = textwrap.dedent(f"""
+        import sys
+        import bpy
+        from unipixie.core import cli
+        from unipixie.core.blender_io.blend_file import save_blend
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=128, ring_count=64)
+        sys.exit(cli.run_command(lambda args: save_blend({str(full_disk / 'old.npz').replace('.npz', '.blend')!r}),
+                                 None, "bake"))
+    """)
+    (full_disk / "old.blend").write_bytes(b"old")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == EXIT_BAD_INPUT and "old.blend" in res.stderr, res.stderr[-2000:]
+    assert (full_disk / "old.blend").read_bytes() == b"old"
+    assert sorted(p.name for p in full_disk.iterdir()) == ["fill", "old.blend", "old.npz"]
+    del scene
