@@ -535,3 +535,29 @@ def test_a_real_full_disk(full_disk, tmp_path):
     assert (full_disk / "old.blend").read_bytes() == b"old"
     assert sorted(p.name for p in full_disk.iterdir()) == ["fill", "old.blend", "old.npz"]
     del scene
+
+
+def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
+    code = textwrap.dedent("""
+        import sys, time
+        from unipixie.core import cli
+        def run(args):
+            try:
+                print("ready", flush=True)
+                time.sleep(30)
+            finally:
+                time.sleep(1.5)  # cleaning up
+        sys.exit(cli.run_command(run, None, "bake"))
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == EXIT_CANCELLED
+    assert "cleaning up" in err and err.strip().endswith("unipixie bake: cancelled") and "Traceback" not in err
