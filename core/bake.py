@@ -557,6 +557,8 @@ class BakeOptions:
     armature_tolerance: float = ARMATURE_TOLERANCE
     solver_settings: object = None
     cache_dir: Optional[str] = None
+    allow_long: bool = False
+    """Run even when the up-front cost estimate (:mod:`unipixie.core.cost`) passes the long-job limit."""
 
     def __post_init__(self):
         from ..solvers import effects as effects_mod
@@ -644,6 +646,12 @@ def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional
     resolved = options.material.resolve(obj, options.alpha, options.solver)
     warnings.extend(resolved.warnings)
     settings = _merge_settings(resolved.settings, options.solver_settings)
+    from .cost import estimate
+
+    est = estimate(f"baking '{obj.name}'", options.solver, size=max(float(obj.size), 1e-9), times=options.times(),
+                   material_spec=resolved.spec, points=obj.vertex_count, settings=settings)
+    est.check(options.allow_long, remedy="bake fewer frames or use a coarser solver setting")
+    progress.set_status(f"estimated cost: {est.describe()}")
     device = resolve_device(options.device)
     progress.set_status(f"preparing the {options.solver} simulation")
     sim = api.prepare(options.solver, body, resolved.spec, scenario, options.times(), device=device,
@@ -1131,7 +1139,7 @@ def write_pc2(path, positions: np.ndarray, start_frame: float = 0.0, sample_rate
 
     positions: (T, N, 3) float32, object-local coordinates.  start_frame / sample_rate: header fields
     (frame of the first sample, frames between samples).  The file is written to a temporary name and
-    renamed, so a reader never sees a half-written cache.
+    renamed (:mod:`unipixie.core.atomic_io`, size checked), so a reader never sees a half-written cache.
     """
     pos = np.ascontiguousarray(np.asarray(positions, dtype="<f4"))
     if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[0] < 1 or pos.shape[1] < 1:
@@ -1139,7 +1147,6 @@ def write_pc2(path, positions: np.ndarray, start_frame: float = 0.0, sample_rate
     if not np.all(np.isfinite(pos)):
         raise UserError("refusing to write NaN/inf positions into a PC2 cache")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = np.zeros((), dtype=_PC2_HEADER)
     header["signature"] = PC2_SIGNATURE
     header["version"] = PC2_VERSION
@@ -1147,15 +1154,13 @@ def write_pc2(path, positions: np.ndarray, start_frame: float = 0.0, sample_rate
     header["start"] = float(start_frame)
     header["rate"] = float(sample_rate)
     header["samples"] = pos.shape[0]
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(header.tobytes())
-            f.write(pos.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    from .atomic_io import write_stream
+
+    def write(f) -> None:
+        f.write(header.tobytes())
+        f.write(pos.tobytes())
+
+    write_stream(path, write, expected_size=header.nbytes + pos.nbytes)
     return path
 
 
@@ -1287,16 +1292,24 @@ def expand_jobs(scene: str, objects: Sequence[str], out: str, *, solver: str = "
 
 
 def check_job_outputs(jobs: Sequence[BakeJob]) -> None:
-    """Two jobs writing the same object into the same output file would overwrite each other: refuse."""
+    """Two jobs writing the same object into the same output file would overwrite each other: refuse.
+    An output that is its input scene or material file — also through a symbolic link or a hard link —
+    is refused too."""
+    from .atomic_io import output_path, refuse_overwriting_inputs, same_file
+
     seen: dict = {}
     for j in jobs:
-        key = (os.path.abspath(j.out), j.object)
+        key = (str(output_path(j.out)), j.object)
         if key in seen:
             raise UserError(f"jobs '{seen[key].describe()}' and '{j.describe()}' both write object '{j.object}' into "
                             f"{j.out}; put a placeholder such as {{alpha}}, {{frames}} or {{job}} in the output name")
         seen[key] = j
-        if os.path.abspath(j.out) == os.path.abspath(j.scene):
-            raise UserError(f"job '{j.describe()}' would overwrite its input scene; choose another --out")
+        if same_file(j.out, j.scene):
+            how = " (through a link)" if os.path.abspath(j.out) != os.path.abspath(j.scene) else ""
+            raise UserError(f"job '{j.describe()}' would overwrite its input scene {j.scene}{how}: the output {j.out} "
+                            "is the same file; choose another --out")
+        inputs = [getattr(j.material, a, None) for a in ("path", "features")] if j.material is not None else []
+        refuse_overwriting_inputs(j.out, [i for i in inputs if i], what="output")
 
 
 def group_jobs(jobs: Sequence[BakeJob]) -> list[list[BakeJob]]:

@@ -7,21 +7,32 @@ automatically and must stay light at import time (heavy imports go inside
 ``run``), so ``unipixie --help`` is instant.
 
 User errors (:class:`~unipixie.core.errors.UserError`, bad arguments) print
-one line ``unipixie: error: ...`` and exit non-zero without a traceback.
+one line ``unipixie: error: ...`` and exit non-zero without a traceback; the exit
+statuses are the table in :mod:`unipixie.core.errors` (0 done, 1 internal error,
+2 bad input, 3 simulation failed, 130 cancelled).  An internal error (a bug)
+prints one line and writes its traceback to a crash log in the cache
+(``UNIPIXIE_TRACEBACK=1`` prints it instead).  The first Ctrl-C cancels the
+command (it cleans up: no output is left half-written); a second one while it
+cleans up only says so; a third stops at once.
 Inside a Blender binary the arguments after ``--`` are used.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
+import signal
 import sys
+import threading
+import time
+import traceback
 from typing import Sequence
 
 from .. import __version__
-from .errors import UserError
+from .errors import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_INTERNAL_ERROR, UserError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -84,15 +95,84 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
-    try:
-        status = args._run(args)
-    except UserError as exc:
-        print(f"unipixie {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except KeyboardInterrupt:
-        print(f"unipixie {args.command}: cancelled", file=sys.stderr)
-        return 130
+    return run_command(args._run, args, args.command)
+
+
+def run_command(fn, args, command: str) -> int:
+    """Run ``fn(args)`` with the command line's error handling; returns the exit status (see the module
+    docstring)."""
+    prefix = f"unipixie {command}"
+    with interrupt_guard(prefix):
+        try:
+            status = fn(args)
+        except UserError as exc:
+            print(f"{prefix}: error: {exc}", file=sys.stderr)
+            return exc.exit_code
+        except KeyboardInterrupt:
+            print(f"{prefix}: cancelled", file=sys.stderr)
+            return EXIT_CANCELLED
+        except MemoryError:
+            print(f"{prefix}: error: out of memory; use fewer frames, points or a coarser resolution", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except OSError as exc:  # an I/O problem no writer turned into a UserError: still one line
+            from .atomic_io import describe_os_error
+
+            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+            print(f"{prefix}: error: cannot access{where}: {describe_os_error(exc)}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except Exception as exc:  # a bug: one line here, the traceback in a crash log
+            if os.environ.get("UNIPIXIE_TRACEBACK"):
+                raise
+            log = _crash_log(command, exc)
+            where = f"; the details are in {log}" if log else ""
+            print(f"{prefix}: internal error (a bug, please report it): {type(exc).__name__}: {exc}{where}",
+                  file=sys.stderr)
+            if not log:
+                traceback.print_exc()
+            return EXIT_INTERNAL_ERROR
     return int(status or 0)
+
+
+def _crash_log(command: str, exc: BaseException):
+    """Write the traceback of ``exc`` to ``<cache>/crash/``; returns the path (``None`` if that fails)."""
+    try:
+        from .atomic_io import write_text
+        from .paths import cache_dir
+
+        path = cache_dir("crash") / f"{command}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.txt"
+        text = (f"unipixie {__version__}, command {command!r}, argv {sys.argv!r}\n"
+                + "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+        return write_text(path, text)
+    except Exception:
+        return None
+
+
+@contextlib.contextmanager
+def interrupt_guard(prefix: str = "unipixie"):
+    """While the block runs, the first Ctrl-C raises ``KeyboardInterrupt`` (the command cancels and cleans
+    up), a second one only says that it is cleaning up, a third exits at once (status 130).  Outputs are
+    written atomically, so even the third leaves no partial file under a final name."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not \
+            signal.default_int_handler:
+        yield
+        return
+    presses = [0]
+
+    def handler(signum, frame):
+        presses[0] += 1
+        if presses[0] == 1:
+            raise KeyboardInterrupt
+        if presses[0] == 2:
+            print(f"\n{prefix}: cancelling: cleaning up so that nothing is left half-written "
+                  "(press Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+            return
+        os._exit(EXIT_CANCELLED)
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def entry_point() -> None:  # pragma: no cover - console script

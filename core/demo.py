@@ -392,7 +392,9 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
                         bakes=[asdict(b) for b in bakes], failed=failed, alpha_difference=difference,
                         seconds=round(time.perf_counter() - t_start, 1), stage_seconds=stages.seconds,
                         checkpoint=str(ckpt), plan=plan.name)
-    (out / SUMMARY_NAME).write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    from .atomic_io import write_json
+
+    write_json(out / SUMMARY_NAME, result.to_dict())
     say(f"Done in {result.seconds:.0f} s.  The α = {plan.plant_alphas[0]:g} and α = {plan.plant_alphas[-1]:g} MPM "
         f"plants differ by up to {100 * difference:.1f} cm.")
     for f in failed:
@@ -521,7 +523,9 @@ def field_pictures(sweep_path, alphas, out_dir, title: str = "") -> list:
         med = 10 ** float(np.median(vol[occ]))
         fig.suptitle(f"{title}: material field at α = {float(a):g} (median E {format_pascal(med)})")
         path = Path(out_dir) / f"field_alpha_{float(a):.2f}.png"
-        fig.savefig(path, dpi=100)
+        from .atomic_io import save_figure
+
+        save_figure(fig, path, dpi=100)
         plt.close(fig)
         paths.append(path)
     return paths

@@ -321,8 +321,9 @@ def save_view_sheet(views: Views, path, columns: int = 6) -> Path:
     fig.suptitle(f"{V} views, {views.images.shape[2]}×{views.images.shape[1]} px, "
                  f"{views.meta.get('engine', '')}", fontsize=9)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    from .atomic_io import save_figure
+
+    save_figure(fig, path)
     return path
 
 
@@ -368,6 +369,7 @@ def save_feature_slices(grid: FeatureGrid, path, slices_per_axis: int = 5) -> Pa
     fig.suptitle(f"feature grid, PCA colours ({grid.feature_model}, D = {grid.dim}, "
                  f"{len(idx)} voxels)", fontsize=9)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    from .atomic_io import save_figure
+
+    save_figure(fig, path)
     return path

@@ -28,7 +28,6 @@ import csv
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -40,6 +39,11 @@ from .errors import UserError
 MEASUREMENT_FORMAT = "unipixie.measurement/1"
 REQUIRED_KEYS = ("positions", "times", "scenario")
 OPTIONAL_KEYS = ("rest_positions", "faces", "E", "nu", "density")
+CSV_SIDECAR_KEY = "csv_sidecar"
+"""Key of the CSV side-car JSON holding what rows cannot carry (point ids, rest positions, faces, per-point material)."""
+CSV_COLUMNS = {"t": ("t", "time", "time_s", "t_s", "seconds"), "id": ("id", "point", "point_id", "track", "track_id"),
+               "x": ("x", "x_m"), "y": ("y", "y_m"), "z": ("z", "z_m")}
+"""The CSV columns and the header names (case-insensitive, any order) each may have."""
 
 
 def _fail(source: str, msg: str) -> UserError:
@@ -286,7 +290,7 @@ class Measurement:
         return d
 
     def save(self, path) -> Path:
-        """Write the ``.npz`` (compressed) atomically; returns the path."""
+        """Write the ``.npz`` (compressed) atomically and verified (:mod:`unipixie.core.atomic_io`); returns the path."""
         path = Path(path)
         arrays: dict[str, Any] = dict(self.extra_arrays)
         arrays["positions"] = self.positions
@@ -303,20 +307,51 @@ class Measurement:
         _atomic_savez(path, arrays)
         return path
 
-    def save_csv(self, path) -> Path:
-        """Write ``t,id,x,y,z`` rows (observed samples only) and the scenario as a side-car ``.json``."""
+    def save_csv(self, path) -> tuple[Path, list[str]]:
+        """Write ``t,id,x,y,z`` rows (observed samples only) and a side-car ``.json`` beside it.
+
+        The side-car holds the scenario and, under key ``csv_sidecar``, what rows cannot carry: every
+        point id (also those never observed), the rest positions, the faces and a per-point material, so
+        that :func:`load_csv` gives back the same measurement (coordinates to 9 significant digits).
+        Returns ``(path, dropped)``: ``dropped`` names what the pair of files does not hold (extra archive
+        keys such as ``synth_truth``), for the caller to say.  Both files are written atomically.
+        """
+        from .atomic_io import write_json, write_text
+
         path = Path(path)
         obs = self.observed
         ti, pi = np.nonzero(obs)
-        rows = np.column_stack([self.times[ti], pi, self.positions[ti, pi]])
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "w", newline="") as f:
-            f.write("t,id,x,y,z\n")
-            for r in rows:
-                f.write(f"{r[0]:.9g},{int(r[1])},{r[2]:.9g},{r[3]:.9g},{r[4]:.9g}\n")
-        os.replace(tmp, path)
-        path.with_suffix(".json").write_text(json.dumps(self.scenario_dict(), indent=2))
-        return path
+        ids = self._point_ids()
+        lines = ["t,id,x,y,z\n"]
+        pos = self.positions
+        times = self.times
+        lines += [f"{times[t]:.17g},{ids[p]},{pos[t, p, 0]:.17g},{pos[t, p, 1]:.17g},{pos[t, p, 2]:.17g}\n"
+                  for t, p in zip(ti.tolist(), pi.tolist())]
+        side = self.scenario_dict()
+        extra: dict[str, Any] = {"point_ids": list(ids)}
+        if self.rest_positions is not None:
+            extra["rest_positions"] = np.asarray(self.rest_positions, dtype=np.float64).tolist()
+        if self.faces is not None:
+            extra["faces"] = np.asarray(self.faces, dtype=np.int64).tolist()
+        if self.material is not None and not self.material.homogeneous:
+            n = self.point_count
+            for k in ("E", "nu", "density"):
+                extra[k] = np.broadcast_to(np.asarray(getattr(self.material, k), dtype=np.float64), (n,)).tolist()
+        side[CSV_SIDECAR_KEY] = extra
+        dropped = sorted(k for k in self.extra_arrays if k != "point_ids")
+        side_path = path.with_suffix(".json")
+        write_text(path, "".join(lines))
+        write_json(side_path, side)
+        return path, dropped
+
+    def _point_ids(self) -> list[str]:
+        """The points' ids as text (the CSV's ``id`` column): the ids read from a CSV, else 0..N-1."""
+        ids = self.extra_arrays.get("point_ids")
+        if ids is not None and np.asarray(ids).shape == (self.point_count,):
+            out = [str(x) for x in np.asarray(ids).tolist()]
+            if len(set(out)) == len(out) and all(out) and not any("," in x or "\n" in x for x in out):
+                return out
+        return [str(i) for i in range(self.point_count)]
 
     def subset(self, frames=None, points=None) -> "Measurement":
         """A measurement restricted to some instants and/or points (faces dropped if points change)."""
@@ -411,6 +446,8 @@ def _scenario_from_dict(d: dict, src: str):
         missing = [k for k in ("E", "nu", "density") if k not in mat]
         if missing:
             raise _fail(src, f"scenario key 'material' lacks {', '.join(repr(k) for k in missing)}")
+        if any(isinstance(mat[k], (str, bytes, bool)) for k in ("E", "nu", "density")):
+            raise _fail(src, f"scenario key 'material' must hold numbers (JSON numbers, not text), got {dict(mat)!r}")
         try:
             E, nu, rho = (float(mat[k]) for k in ("E", "nu", "density"))
         except (TypeError, ValueError):
@@ -428,22 +465,12 @@ def _scenario_from_dict(d: dict, src: str):
 
 
 def _atomic_savez(path: Path, arrays: dict) -> None:
+    from .atomic_io import save_npz
+
     path = Path(path)
     if path.suffix != ".npz":
         raise UserError(f"{path}: a measurement file must end in .npz")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; a measurement is an ordinary file
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    save_npz(path, **arrays)
 
 
 # --------------------------------------------------------------------------- loading
@@ -493,13 +520,63 @@ def load_npz(path) -> Measurement:
                        extra_arrays=extras, source=src)
 
 
+def _csv_columns(row: list, src: str, lineno: int) -> Optional[dict]:
+    """``{"t": index, "id": ..., "x": ..., "y": ..., "z": ...}`` from a header row (names as
+    :data:`CSV_COLUMNS`, case-insensitive, any order), or ``None`` when ``row`` is data (its first
+    cell a number)."""
+    cells = [c.strip().lower() for c in row]
+    try:
+        float(cells[0])
+        return None  # data, no header
+    except ValueError:
+        pass
+    cols: dict = {}
+    for i, c in enumerate(cells):
+        for name, aliases in CSV_COLUMNS.items():
+            if c in aliases:
+                if name in cols:
+                    raise UserError(f"{src}: line {lineno}: the header names column '{name}' twice "
+                                    f"({row[cols[name]]!r} and {row[i]!r})")
+                cols[name] = i
+    missing = [n for n in CSV_COLUMNS if n not in cols]
+    if missing:
+        raise UserError(f"{src}: line {lineno}: the header {','.join(row)!r} lacks column(s) {', '.join(missing)}; "
+                        "a measurement CSV has columns t (s), id, x, y, z (m) — named in the header in any order "
+                        "(case-insensitive), or in that order without a header")
+    return cols
+
+
+def _csv_id(text: str, src: str, lineno: int) -> str:
+    """A point id as written: an integer (``"7"``, also ``"7.0"`` → ``"7"``) or a name; a number that is
+    not whole (``"1.5"``) is refused rather than read as a new point."""
+    t = text.strip()
+    if not t:
+        raise UserError(f"{src}: line {lineno}: column 'id' is empty")
+    try:
+        return str(int(t))
+    except ValueError:
+        pass
+    try:
+        v = float(t)
+    except ValueError:
+        return t  # a name
+    if math.isfinite(v) and v == round(v):
+        return str(int(v))
+    raise UserError(f"{src}: line {lineno}: point id {t!r} is not a whole number; ids are integers (or names), "
+                    "one per tracked point")
+
+
 def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measurement:
     """Read ``t,id,x,y,z`` rows (seconds, point id, metres) into a measurement.
 
-    Missing (t, id) pairs and empty/``nan`` coordinates become NaN (unobserved).  Point ids
-    are sorted (numerically when all are integers); instants are the sorted distinct ``t``.
-    scenario: dict / JSON path / ``None`` (then ``<name>.json`` beside the CSV if it exists,
-    else the default scenario with no material).
+    The columns are found by the header's names (:data:`CSV_COLUMNS`: ``t``/``time``, ``id``/``point``,
+    ``x``, ``y``, ``z``; case-insensitive, any order, other columns ignored with a warning); a file
+    without a header is read in the order ``t,id,x,y,z``.  Missing (t, id) pairs and empty/``nan``
+    coordinates become NaN (unobserved).  Point ids are whole numbers or names (``"1.5"`` is refused);
+    they are sorted (numerically when all are integers); instants are the sorted distinct ``t``.
+    scenario: dict / JSON path / ``None`` (then ``<name>.json`` beside the CSV if it exists, else the
+    default scenario with no material).  A side-car written by :meth:`Measurement.save_csv` also gives
+    back the point ids never observed, the rest positions, the faces and a per-point material.
     """
     path = Path(path)
     src = str(path)
@@ -508,33 +585,78 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
     ts: list[float] = []
     ids: list[str] = []
     xyz: list[tuple[float, float, float]] = []
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        for lineno, row in enumerate(reader, start=1):
-            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
-                continue
-            if len(row) != 5:
-                raise UserError(f"{src}: line {lineno}: expected 5 columns t,id,x,y,z, got {len(row)}")
-            try:
-                t = float(row[0])
-            except ValueError:
-                if lineno == 1 or not ts:
-                    continue  # header
-                raise UserError(f"{src}: line {lineno}: column 't' is not a number: {row[0]!r}") from None
-            vals = []
-            for name, c in zip("xyz", row[2:]):
-                c = c.strip()
+    cols: Optional[dict] = None
+    header_seen = False
+    warnings: list[str] = []
+    try:
+        f = open(path, newline="", encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"{src}: cannot read it ({exc.strerror or exc})") from None
+    try:
+        with f:
+            reader = csv.reader(f)
+            for lineno, row in enumerate(reader, start=1):
+                if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                    continue
+                if not header_seen:
+                    header_seen = True
+                    cols = _csv_columns(row, src, lineno)
+                    if cols is not None:
+                        ignored = [row[i] for i in range(len(row)) if i not in cols.values()]
+                        if ignored:
+                            warnings.append(f"CSV columns {', '.join(repr(c) for c in ignored)} are ignored")
+                        continue
+                    if len(row) != 5:
+                        raise UserError(f"{src}: line {lineno}: expected 5 columns t,id,x,y,z (or a header naming "
+                                        f"them), got {len(row)}")
+                    cols = {"t": 0, "id": 1, "x": 2, "y": 3, "z": 4}
+                if len(row) <= max(cols.values()):
+                    raise UserError(f"{src}: line {lineno}: expected {max(cols.values()) + 1} columns, got {len(row)}")
                 try:
-                    vals.append(float(c) if c else math.nan)
+                    t = float(row[cols["t"]])
                 except ValueError:
-                    raise UserError(f"{src}: line {lineno}: column '{name}' is not a number: {c!r}") from None
-            if not math.isfinite(t):
-                raise UserError(f"{src}: line {lineno}: column 't' must be finite")
-            ts.append(t)
-            ids.append(row[1].strip())
-            xyz.append(tuple(vals))
+                    raise UserError(f"{src}: line {lineno}: column 't' is not a number: {row[cols['t']]!r}") from None
+                vals = []
+                for name in "xyz":
+                    c = row[cols[name]].strip()
+                    try:
+                        vals.append(float(c) if c else math.nan)
+                    except ValueError:
+                        raise UserError(f"{src}: line {lineno}: column '{name}' is not a number: {c!r}") from None
+                if not math.isfinite(t):
+                    raise UserError(f"{src}: line {lineno}: column 't' must be finite")
+                ts.append(t)
+                ids.append(_csv_id(row[cols["id"]], src, lineno))
+                xyz.append(tuple(vals))
+    except UnicodeDecodeError:
+        raise UserError(f"{src}: not a text CSV file (not UTF-8)") from None
+    except csv.Error as exc:
+        raise UserError(f"{src}: not a readable CSV file ({exc})") from None
     if not ts:
         raise UserError(f"{src}: no data rows (expected t,id,x,y,z)")
+    sdict = None
+    if scenario is None:
+        side = path.with_suffix(".json")
+        if side.is_file():
+            scenario = side
+    if isinstance(scenario, (str, os.PathLike)):
+        sp = Path(scenario)
+        from .errors import read_json
+
+        if not sp.is_file():
+            raise UserError(f"{sp}: scenario file not found")
+        sdict = read_json(sp)
+        if not isinstance(sdict, dict):
+            raise UserError(f"{sp}: the scenario must be a JSON object")
+        src_sc = str(sp)
+    elif isinstance(scenario, Mapping):
+        sdict, src_sc = dict(scenario), src
+    else:
+        sdict, src_sc = {"format": MEASUREMENT_FORMAT}, src
+    sidecar = sdict.pop(CSV_SIDECAR_KEY, None) if isinstance(sdict, dict) else None
+    if sidecar is not None and not isinstance(sidecar, Mapping):
+        raise UserError(f"{src_sc}: key '{CSV_SIDECAR_KEY}' must be a JSON object")
+    sidecar = dict(sidecar or {})
     t_arr = np.asarray(ts)
     # distinct instants, merging times equal to within a nanosecond
     order = np.argsort(t_arr, kind="stable")
@@ -544,10 +666,22 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
             uniq.append(float(v))
     times = np.asarray(uniq)
     t_index = np.clip(np.searchsorted(times, t_arr - 1e-9), 0, len(times) - 1)
-    try:
-        keys = sorted(set(ids), key=int)
-    except ValueError:
-        keys = sorted(set(ids))
+    all_ids = set(ids)
+    side_ids = sidecar.get("point_ids")
+    if side_ids is not None:
+        if not isinstance(side_ids, list) or len(set(map(str, side_ids))) != len(side_ids):
+            raise UserError(f"{src_sc}: key '{CSV_SIDECAR_KEY}.point_ids' must be a list of distinct ids")
+        side_ids = [str(x) for x in side_ids]
+        unknown = sorted(all_ids - set(side_ids))
+        if unknown:
+            raise UserError(f"{src}: point id(s) {', '.join(unknown[:5])} are not in the side-car's point_ids; the "
+                            "CSV and its side-car JSON do not belong together")
+        keys = side_ids
+    else:
+        try:
+            keys = sorted(all_ids, key=int)
+        except ValueError:
+            keys = sorted(all_ids)
     p_index_of = {k: i for i, k in enumerate(keys)}
     positions = np.full((len(times), len(keys), 3), np.nan)
     seen = np.zeros((len(times), len(keys)), dtype=bool)
@@ -557,25 +691,28 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
             raise UserError(f"{src}: point id {pid!r} appears twice at t = {times[t_i]:g} s")
         seen[t_i, p_i] = True
         positions[t_i, p_i] = v
-    sdict = None
-    if scenario is None:
-        side = path.with_suffix(".json")
-        if side.is_file():
-            scenario = side
-    if isinstance(scenario, (str, os.PathLike)):
-        sp = Path(scenario)
-        try:
-            sdict = json.loads(sp.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise UserError(f"{sp}: cannot read the scenario JSON ({exc})") from None
-        src_sc = str(sp)
-    elif isinstance(scenario, Mapping):
-        sdict, src_sc = dict(scenario), src
-    else:
-        sdict, src_sc = {"format": MEASUREMENT_FORMAT}, src
+    if rest_positions is None and sidecar.get("rest_positions") is not None:
+        rest_positions = _float_array(sidecar["rest_positions"], f"{CSV_SIDECAR_KEY}.rest_positions", src_sc)
+    if faces is None and sidecar.get("faces") is not None:
+        faces = np.asarray(sidecar["faces"])
     sc, material = _scenario_from_dict(sdict, src_sc)
+    per_point = {k: sidecar[k] for k in ("E", "nu", "density") if sidecar.get(k) is not None}
+    if per_point:
+        base = material or MeasuredMaterial(0, 0, 0)
+        vals = []
+        for k in ("E", "nu", "density"):
+            if k in per_point:
+                arr = _float_array(per_point[k], f"{CSV_SIDECAR_KEY}.{k}", src_sc)
+                if arr.shape != (len(keys),):
+                    raise UserError(f"{src_sc}: key '{CSV_SIDECAR_KEY}.{k}' must hold one value per point "
+                                    f"({len(keys)}), got shape {arr.shape}")
+                vals.append(arr)
+            else:
+                vals.append(getattr(base, k))
+        material = MeasuredMaterial(*vals, base.material_class)
     m = Measurement(positions=positions, times=times, scenario=sc, rest_positions=rest_positions, faces=faces,
                     material=material, source=src)
+    m.warnings.extend(warnings)
     m.extra_arrays["point_ids"] = np.asarray(keys)
     return m
 

@@ -29,6 +29,15 @@ def _check(cond: bool, msg: str) -> None:
         raise UserError(msg)
 
 
+REQUIRED_KEYS = {
+    "views": ("images", "depth", "intrinsics", "cam_to_world", "normalisation", "meta"),
+    "feature_grid": ("occupancy", "features", "geometry", "feature_model", "meta"),
+    "material_field": ("occupancy", "geometry", "E", "nu", "density", "material", "alpha", "meta"),
+    "trajectory": ("times", "positions", "solver", "meta"),
+}
+"""The keys each archive format must hold (besides ``format``)."""
+
+
 def _load_npz(path, fmt_key: str) -> dict:
     path = Path(path)
     if not path.exists():
@@ -38,9 +47,30 @@ def _load_npz(path, fmt_key: str) -> dict:
             data = {k: z[k] for k in z.files}
     except Exception as exc:  # corrupt zip, not an npz, ...
         raise UserError(f"{path}: not a readable .npz archive ({exc})") from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: not a .npz archive (a single array)")
     fmt = str(data.get("format", ""))
     _check(fmt == FORMATS[fmt_key], f"{path}: key 'format' is {fmt!r}, expected {FORMATS[fmt_key]!r}")
+    missing = [k for k in REQUIRED_KEYS[fmt_key] if k not in data]
+    _check(not missing, f"{path}: key(s) {', '.join(repr(k) for k in missing)} missing (a {FORMATS[fmt_key]} file holds "
+                        f"{', '.join(REQUIRED_KEYS[fmt_key])}); the file is damaged or not made by UniPixie")
     return data
+
+
+def _json_key(d: dict, key: str, path, kind=dict):
+    """The JSON held in archive key ``key`` (a 0-d string array), checked to be a ``kind``."""
+    try:
+        v = json.loads(str(d[key]))
+    except (ValueError, RecursionError) as exc:
+        raise UserError(f"{path}: key '{key}' is not valid JSON ({exc})") from None
+    _check(isinstance(v, kind), f"{path}: key '{key}' must hold a JSON {kind.__name__}")
+    return v
+
+
+def _save_npz(path, **arrays) -> Path:
+    from .atomic_io import save_npz
+
+    return save_npz(path, **arrays)
 
 
 # --------------------------------------------------------------------------- Views
@@ -83,7 +113,7 @@ class Views:
 
     def save(self, path) -> Path:
         path = Path(path)
-        np.savez_compressed(path, format=FORMATS["views"], images=(np.clip(self.images, 0, 1) * 65535).astype(np.uint16),
+        _save_npz(path, format=FORMATS["views"], images=(np.clip(self.images, 0, 1) * 65535).astype(np.uint16),
                             depth=self.depth, intrinsics=self.intrinsics, cam_to_world=self.cam_to_world,
                             normalisation=self.normalisation, meta=json.dumps(self.meta))
         return path
@@ -92,7 +122,7 @@ class Views:
     def load(cls, path) -> "Views":
         d = _load_npz(path, "views")
         return cls(images=d["images"].astype(np.float32) / 65535.0, depth=d["depth"], intrinsics=d["intrinsics"],
-                   cam_to_world=d["cam_to_world"], normalisation=d["normalisation"], meta=json.loads(str(d["meta"])))
+                   cam_to_world=d["cam_to_world"], normalisation=d["normalisation"], meta=_json_key(d, "meta", path))
 
 
 # --------------------------------------------------------------------------- grids
@@ -163,7 +193,7 @@ class FeatureGrid:
 
     def save(self, path) -> Path:
         path = Path(path)
-        np.savez_compressed(path, format=FORMATS["feature_grid"], occupancy=np.packbits(self.occupancy.ravel()),
+        _save_npz(path, format=FORMATS["feature_grid"], occupancy=np.packbits(self.occupancy.ravel()),
                             features=self.features, geometry=json.dumps(self.geometry.to_dict()),
                             feature_model=self.feature_model, meta=json.dumps(self.meta))
         return path
@@ -171,11 +201,14 @@ class FeatureGrid:
     @classmethod
     def load(cls, path) -> "FeatureGrid":
         d = _load_npz(path, "feature_grid")
-        geo = GridGeometry(**json.loads(str(d["geometry"])))
+        try:
+            geo = GridGeometry(**_json_key(d, "geometry", path))
+        except TypeError as exc:
+            raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
         R = geo.resolution
         occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
         return cls(geometry=geo, occupancy=occ, features=d["features"], feature_model=str(d["feature_model"]),
-                   meta=json.loads(str(d["meta"])))
+                   meta=_json_key(d, "meta", path))
 
 
 @dataclass
@@ -225,7 +258,7 @@ class MaterialField:
 
     def save(self, path) -> Path:
         path = Path(path)
-        np.savez_compressed(path, format=FORMATS["material_field"], occupancy=np.packbits(self.occupancy.ravel()),
+        _save_npz(path, format=FORMATS["material_field"], occupancy=np.packbits(self.occupancy.ravel()),
                             geometry=json.dumps(self.geometry.to_dict()), E=self.E, nu=self.nu, density=self.density,
                             material=self.material, alpha=np.float64(self.alpha), meta=json.dumps(self.meta))
         return path
@@ -233,10 +266,13 @@ class MaterialField:
     @classmethod
     def load(cls, path) -> "MaterialField":
         d = _load_npz(path, "material_field")
-        geo = GridGeometry(**json.loads(str(d["geometry"])))
+        try:
+            geo = GridGeometry(**_json_key(d, "geometry", path))
+        except TypeError as exc:
+            raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
         R = geo.resolution
         occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
-        return cls(geo, occ, d["E"], d["nu"], d["density"], d["material"], float(d["alpha"]), json.loads(str(d["meta"])))
+        return cls(geo, occ, d["E"], d["nu"], d["density"], d["material"], float(d["alpha"]), _json_key(d, "meta", path))
 
 
 # --------------------------------------------------------------------------- Trajectory
@@ -295,7 +331,7 @@ class Trajectory:
             extra["handle_transforms"] = self.handle_transforms
         for k, v in self.particle_attributes.items():
             extra[f"attr__{k}"] = np.asarray(v)
-        np.savez_compressed(path, format=FORMATS["trajectory"], times=self.times, positions=self.positions,
+        _save_npz(path, format=FORMATS["trajectory"], times=self.times, positions=self.positions,
                             solver=self.solver, meta=json.dumps(self.meta, default=str), **extra)
         return path
 
@@ -305,4 +341,4 @@ class Trajectory:
         attrs = {k[len("attr__"):]: v for k, v in d.items() if k.startswith("attr__")}
         return cls(times=d["times"], positions=d["positions"], solver=str(d["solver"]),
                    particle_positions=d.get("particle_positions"), particle_attributes=attrs,
-                   handle_transforms=d.get("handle_transforms"), meta=json.loads(str(d["meta"])))
+                   handle_transforms=d.get("handle_transforms"), meta=_json_key(d, "meta", path))

@@ -17,7 +17,18 @@ SCENARIO_FORMAT = "unipixie.measurement/1"
 _KNOWN = {"format", "gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box", "material", "notes"}
 
 
+def _not_text(value, key: str) -> None:
+    """Numbers in a scenario are JSON numbers: text such as ``"9.81"`` (or true/false) is refused in every key."""
+    items = value if isinstance(value, (list, tuple)) else [value]
+    flat = []
+    for v in items:
+        flat.extend(v if isinstance(v, (list, tuple)) else [v])
+    if any(isinstance(v, (str, bytes, bool)) for v in flat):
+        raise UserError(f"scenario key '{key}' must hold numbers, not text or true/false, got {value!r}")
+
+
 def _vec3(value, key: str) -> np.ndarray:
+    _not_text(value, key)
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
@@ -54,6 +65,7 @@ class Scenario:
         self.initial_velocity = _vec3(self.initial_velocity, "initial_velocity")
         self.initial_angular_velocity = _vec3(self.initial_angular_velocity, "initial_angular_velocity")
         if self.ground_height is not None:
+            _not_text(self.ground_height, "ground")
             try:
                 self.ground_height = float(self.ground_height)
             except (TypeError, ValueError):
@@ -61,7 +73,12 @@ class Scenario:
             if not np.isfinite(self.ground_height):
                 raise UserError("scenario key 'ground': height must be finite")
         if self.pinned_box is not None:
-            box = np.asarray(self.pinned_box, dtype=np.float64)
+            _not_text(self.pinned_box, "pinned_box")
+            try:
+                box = np.asarray(self.pinned_box, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise UserError(f"scenario key 'pinned_box' must be [[xmin,ymin,zmin],[xmax,ymax,zmax]], got "
+                                f"{self.pinned_box!r}") from None
             if box.shape != (2, 3) or not np.all(np.isfinite(box)):
                 raise UserError(f"scenario key 'pinned_box' must be [[xmin,ymin,zmin],[xmax,ymax,zmax]], got {self.pinned_box!r}")
             if np.any(box[1] < box[0]):

@@ -180,10 +180,9 @@ def table1(pred_root) -> dict:
 
 # =========================================================================== predictions
 def _save_npz(path: Path, **arrays) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    from ..core.atomic_io import save_npz
+
+    save_npz(path, **arrays)
 
 
 def _unipixie_arrays(pred, alphas) -> dict:
@@ -469,7 +468,9 @@ def distributions_figure(path: Path, dists: dict, alphas) -> Path:
             if r == 0 and c == 0:
                 ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from ..core.atomic_io import save_figure
+
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -564,8 +565,10 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         report["model_is_clip"] = not methods.model.cfg.feature_model.startswith("offline-")
     fig = distributions_figure(out / "logE_distributions.png", dists, alphas) if dists else None
     report["figure"] = fig.name if fig else None
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=_jd))
-    (out / "report.md").write_text(report_markdown(report))
+    from ..core.atomic_io import write_text
+
+    write_text(out / "report.json", json.dumps(report, indent=1, default=_jd))
+    write_text(out / "report.md", report_markdown(report))
     return report
 
 

@@ -262,10 +262,15 @@ class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
         s.rmse = result.final.rmse
         s.identified = result.identified or ""
         s.report_path = str(Path(out_dir) / "diagnosis.json")
-        s.summary = (f"{result.identified or 'nothing missing'}: {1e3 * result.baseline.rmse:.2f} → "
+        verdict = result.verdict or {}
+        explained = bool(verdict.get("explained"))
+        what = result.identified or ("nothing missing" if explained else "NOT explained (no effect helps)")
+        if result.identified and not explained:
+            what += " (the model still does NOT explain the measurement)"
+        s.summary = (f"{what}: {1e3 * result.baseline.rmse:.2f} → "
                      f"{1e3 * result.final.rmse:.2f} mm (noise {1e3 * result.noise_rmse:.2f} mm)")
         _colour(s, result.baseline.per_point)
-        self.report({"INFO"}, s.summary)
+        self.report({"INFO"} if explained else {"WARNING"}, s.summary)
         return {"FINISHED"}
 
 

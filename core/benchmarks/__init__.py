@@ -61,7 +61,9 @@ def record(name: str, results: Iterable[dict], path: Path | None = None) -> Path
                    != (r["case"], r["device"], r["metric"])]
         entries.append(dict(r))
     doc = {"benchmark": name, "commit": git_commit(), "date": _dt.date.today().isoformat(), "results": entries}
-    path.write_text(json.dumps(doc, indent=2) + "\n")
+    from ..atomic_io import write_json
+
+    write_json(path, doc)
     return path
 
 

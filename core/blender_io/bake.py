@@ -1004,41 +1004,57 @@ def blend_object_names(path) -> list[str]:
     return names
 
 
-def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print) -> list[BakeReport]:
+def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print,
+             allow_long: bool = False) -> list[BakeReport]:
     """Run bake jobs: for each (scene, out) group open the scene, bake its objects, save ``out``.
 
     Object names may be shell wildcards (resolved in the opened scene).  PC2 caches go to
-    ``<out stem>_unipixie/`` next to ``out`` and are referenced relative to it.
+    ``<out stem>_unipixie/`` next to ``out`` and are referenced relative to it.  Before any simulation
+    every output is checked (not an input, also through links; writable, with room) and locked against
+    a second run writing it at the same time; each ``.blend`` is saved atomically and verified
+    (:func:`~unipixie.core.blender_io.blend_file.save_blend`).  allow_long: run jobs whose up-front cost
+    estimate passes the long-job limit (:mod:`unipixie.core.cost`).
     """
+    from ..atomic_io import check_writable, locked
+    from .blend_file import save_blend
+
     progress = progress or silent()
     reports: list[BakeReport] = []
     groups = core_bake.group_jobs(jobs)
-    for group in groups:
+    core_bake.check_job_outputs(jobs)
+    for group in groups:  # before any simulation: every output can be written
         scene_path = Path(group[0].scene)
-        out = Path(group[0].out)
         if not scene_path.is_file():
             raise UserError(f"scene file not found: {scene_path}")
         if scene_path.suffix.lower() != ".blend":
             raise UserError(f"{scene_path}: the scene must be a .blend file")
-        bpy.ops.wm.open_mainfile(filepath=str(scene_path.resolve()))
-        with registered_properties():
-            scene = bpy.context.scene
-            names = [o.name for o in bpy.data.objects]
-            for job in group:
-                for name in core_bake.select_objects([job.object], names):
-                    obj = bpy.data.objects[name]
-                    j = BakeJob(**{**job.__dict__, "object": name})
-                    options, scenario = options_for_job(j, obj, scene)
-                    log(f"baking {j.describe()}")
-                    sub = progress.sub(1.0, 1.0, name)
-                    rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
-                    for n in rep.notes:
-                        log(f"  note: {n}")
-                    log(f"  {rep.summary()}")
-                    reports.append(rep)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            bpy.ops.wm.save_as_mainfile(filepath=str(out.resolve()), relative_remap=True)
-            log(f"saved {out}")
+        out = Path(group[0].out)
+        if out.suffix.lower() != ".blend":
+            raise UserError(f"{out}: the output must be a .blend file")
+        check_writable(out, 2 * scene_path.stat().st_size, what="output")
+    with locked([g[0].out for g in groups], what="output"):
+        for group in groups:
+            scene_path = Path(group[0].scene)
+            out = Path(group[0].out)
+            bpy.ops.wm.open_mainfile(filepath=str(scene_path.resolve()))
+            with registered_properties():
+                scene = bpy.context.scene
+                names = [o.name for o in bpy.data.objects]
+                for job in group:
+                    for name in core_bake.select_objects([job.object], names):
+                        obj = bpy.data.objects[name]
+                        j = BakeJob(**{**job.__dict__, "object": name})
+                        options, scenario = options_for_job(j, obj, scene)
+                        options.allow_long = bool(allow_long)
+                        log(f"baking {j.describe()}")
+                        sub = progress.sub(1.0, 1.0, name)
+                        rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
+                        for n in rep.notes:
+                            log(f"  note: {n}")
+                        log(f"  {rep.summary()}")
+                        reports.append(rep)
+                save_blend(out)
+                log(f"saved {out}")
     return reports
 
 

@@ -100,6 +100,8 @@ def add_arguments(p):
                    help="between frames (both are exact at integer frames)")
     o.add_argument("--particles", action="store_true", help="MPM: also make a particle object with E, class, velocity")
     o.add_argument("--settings", type=_json_object, metavar="JSON", help="solver settings, e.g. '{\"cells_across\": 24}'")
+    o.add_argument("--allow-long", action="store_true",
+                   help="bake even when the up-front cost estimate (frames × substeps) passes the long-job limit")
 
 
 def _scenario_overrides(args) -> dict:
@@ -149,6 +151,9 @@ def jobs_from_args(args):
         raise UserError("--features (the model's material) cannot be combined with --material-file or --E/--nu/...")
     if args.features and not args.alpha:
         raise UserError("--features needs --alpha: the model predicts the material at α")
+    if args.alpha and any(homogeneous):
+        raise UserError("--alpha chooses the model's material (with --features or the object's model settings); a "
+                        "homogeneous material given by --E/--nu/--density/--material-class has no α — drop one of them")
     material = None
     if args.features:
         material = bake.ModelSource(features=str(args.features), checkpoint=args.checkpoint or "", seed=args.seed,
@@ -184,6 +189,12 @@ def run(args) -> int:
         bake.BakeOptions(solver=j.solver, frames=j.frames or (1, 2), alpha=j.alpha, effects=j.effects,
                          output=j.output, interpolation=j.interpolation, particles=j.particles,
                          armature_tolerance=j.armature_tolerance)
+    from ..cost import frames_estimate
+
+    for j in jobs:  # absurd frame counts are refused before any scene is opened (the full estimate follows)
+        if j.frames is not None:
+            frames_estimate(f"baking '{j.object}' over frames {j.frames.start}-{j.frames.end}", j.frames.count).check(
+                args.allow_long, remedy="bake fewer frames")
     groups = bake.group_jobs(jobs)
     mine = bake.shard_groups(groups, args.shard)
     tag = f"shard {args.shard[0]}/{args.shard[1]}: " if args.shard else ""
@@ -199,6 +210,6 @@ def run(args) -> int:
     from ..blender_io.bake import run_jobs
 
     with Progress(total=len(mine_jobs), description="bake") as progress:
-        reports = run_jobs(mine_jobs, progress=progress)
+        reports = run_jobs(mine_jobs, progress=progress, allow_long=args.allow_long)
     print(f"{tag}baked {len(reports)} object(s) into {len(mine)} file(s)")
     return 0

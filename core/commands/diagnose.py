@@ -95,6 +95,9 @@ def add_arguments(p):
                    help="fit the candidate effects side by side with their simulations batched together "
                         "(default: on a GPU with mpm/lbs, off on the CPU)")
     p.add_argument("--quiet", action="store_true", help="print only the result")
+    p.add_argument("--allow-long", action="store_true",
+                   help="run even when the times look like milliseconds or the estimated cost passes the long-job "
+                        "limit (see docs/diagnosis.md)")
     add_measurement_arguments(p)
 
 
@@ -114,7 +117,8 @@ def run(args) -> int:
         result = diagnose.diagnose(m, args.solver, out_dir=args.out, effects_on=args.effects_on, add=args.add,
                                    max_additions=args.max_additions, device=device,
                                    settings=parse_settings(args.setting) or None, candidates=cands,
-                                   parallel=args.parallel, progress=progress, log=log)
+                                   parallel=args.parallel, allow_long=args.allow_long, progress=progress,
+                                   log=log)
     print(result.summary())
     print(f"report: {args.out}/diagnosis.json, {args.out}/diagnosis.html")
     return 0

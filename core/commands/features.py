@@ -61,6 +61,13 @@ def run(args) -> int:
         value = getattr(args, name)
         if value and not value.lower().endswith(".png"):
             raise UserError(f"--{name} {value}: pictures are written as PNG; name it ….png")
+    from ..atomic_io import check_writable, refuse_overwriting_inputs
+
+    outputs = [(out, "output")] + [(Path(v).expanduser(), f"--{n.replace('_', '-')} file") for n, v in
+                                   (("sheet", args.sheet), ("slices", args.slices), ("save_views", args.save_views)) if v]
+    for path, what in outputs:  # before rendering: every output can be written and is not the input
+        refuse_overwriting_inputs(path, [args.object], what=what)
+        check_writable(path, what=what)
     options = FeatureOptions(view_count=args.views, resolution=args.resolution, engine=args.engine,
                              samples=args.samples, render_device=args.render_device,
                              offline=args.offline_features, clip_weights=args.clip_weights, device=args.device,

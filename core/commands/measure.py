@@ -6,6 +6,8 @@ from ._common import device as device_type
 from ._common import existing_file
 
 NAME = "measure"
+MIN_SYNTH_POINTS = 8
+"""The fewest tracked points ``measure synth`` makes (the coarsest closed surface of its shapes)."""
 HELP = "make a synthetic measurement with hidden effects, inspect or convert measurement files"
 EXAMPLES = """  unipixie measure synth --out m.npz --effect wind:acceleration=0,0.5,0 --solver mpm --noise 0.001 --occlusion 0.1
   unipixie measure synth --out drag.npz --effect quadratic_drag:k=0.3 --scenario throw --shape cube
@@ -64,22 +66,44 @@ def add_arguments(p):
     add_measurement_arguments(cv)
 
 
-def _check_output(path, force: bool):
+def _check_output(path, force: bool, inputs=()):
+    """The output path, checked before any work: .npz or .csv, not an existing file without --force (a
+    CSV's side-car .json included), not (a link to) an input, writable with room."""
     from pathlib import Path
 
+    from ..atomic_io import check_writable, refuse_overwriting_inputs
     from ..errors import UserError
 
     p = Path(path).expanduser()
     if p.suffix.lower() not in (".npz", ".csv"):
         raise UserError(f"{p}: the output must end in .npz or .csv")
-    if p.exists() and not force:
-        raise UserError(f"{p} exists; use --force to overwrite it")
+    targets = [p] + ([p.with_suffix(".json")] if p.suffix.lower() == ".csv" else [])
+    for t in targets:
+        refuse_overwriting_inputs(t, inputs)
+        if (t.exists() or t.is_symlink()) and not force:
+            raise UserError(f"{t} exists; use --force to overwrite it")
+        check_writable(t)
     return p
 
 
 def _write(m, p):
+    """Write ``m`` to ``p`` (.npz or .csv + side-car .json), locked against a second run writing it at the same
+    time; returns the path and says what a CSV drops."""
+    from ..atomic_io import OutputLock
+
+    with OutputLock(p, "output"):
+        return _write_unlocked(m, p)
+
+
+def _write_unlocked(m, p):
     if p.suffix.lower() == ".csv":
-        return m.save_csv(p)
+        path, dropped = m.save_csv(p)
+        print(f"wrote {p.with_suffix('.json')} (the scenario, point ids, rest positions"
+              f"{', faces' if m.faces is not None else ''}: the side-car the CSV needs)")
+        if dropped:
+            print(f"note: the CSV and its side-car drop the archive key(s) {', '.join(dropped)} (only a .npz holds "
+                  "them)")
+        return path
     return m.save(p)
 
 
@@ -97,6 +121,18 @@ def _synth(args) -> int:
     from ...solvers.warp_runtime import resolve_device
     from .diagnose import parse_settings
 
+    from ..errors import UserError
+
+    if args.points < MIN_SYNTH_POINTS:
+        raise UserError(f"--points {args.points}: a synthetic measurement needs at least {MIN_SYNTH_POINTS} tracked "
+                        "points (the shape's surface vertices)")
+    checks = [("--duration", args.duration, args.duration > 0, "a positive number of seconds"),
+              ("--fps", args.fps, args.fps > 0, "a positive number of instants per second"),
+              ("--noise", args.noise, args.noise >= 0, "0 or more metres"),
+              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)")]
+    for flag, value, ok, what in checks:
+        if not (ok and value == value and abs(value) != float("inf")):
+            raise UserError(f"{flag} {value:g}: expected {what}")
     out = _check_output(args.out, args.force)
     effects = [e for e in args.effect if e.strip().lower() != "none"]
     with Progress(total=1.0, description="synth") as progress:
@@ -152,7 +188,9 @@ def _show(args) -> int:
 def _convert(args) -> int:
     from .diagnose import load_measurement
 
-    out = _check_output(args.output, args.force)
+    out = _check_output(args.output, args.force, inputs=[args.measurement] + (
+        [args.measurement.with_suffix(".json")] if str(args.measurement).lower().endswith(".csv") else []) + (
+        [args.scenario] if getattr(args, "scenario", None) else []))
     m = load_measurement(args)
     path = _write(m, out)
     print(f"wrote {path}: {m.summary()}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import device, existing_file, unit_interval
+from ._common import device, existing_file, positive_int, unit_interval
 
 NAME = "predict"
 HELP = "predict materials (MPM field, LBS parameters, spring-mass stiffness) for a feature grid at one or more alpha values"
@@ -25,20 +25,20 @@ def add_arguments(p):
     p.add_argument("--checkpoint", metavar="DIR", help="checkpoint directory (default: the shipped model)")
     p.add_argument("--alpha", type=unit_interval, default=None, help="one alpha in [0, 1] (soft to stiff; default 0.5)")
     p.add_argument("--alphas", type=_alphas, default=None, metavar="A,B,...", help="several alphas, predicted in one pass")
-    p.add_argument("--sweep", type=int, default=None, metavar="K", help="predict K evenly spaced alphas and write the cached sweep")
+    p.add_argument("--sweep", type=positive_int, default=None, metavar="K", help="predict K evenly spaced alphas and write the cached sweep")
     p.add_argument("--heads", default="mpm,lbs,spring_mass", help="comma-separated: mpm, lbs, spring_mass (default all)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (same seed, same result)")
-    p.add_argument("--steps", type=int, default=None, help="Heun steps (default 15)")
+    p.add_argument("--steps", type=positive_int, default=None, help="Heun steps, 1 or more (default 15)")
     p.add_argument("--device", type=device, default="auto")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
 
 
 def run(args) -> int:
-    import json
     from pathlib import Path
 
     import numpy as np
 
+    from ..atomic_io import check_writable, save_npz, write_error, write_json
     from ..errors import UserError
     from ..model.inference import DEFAULT_STEPS, Predictor, canonical_heads
     from ..model.sweep import predict_sweep
@@ -49,11 +49,17 @@ def run(args) -> int:
     if sum(chosen) > 1:
         raise UserError("give only one of --alpha, --alphas and --sweep")
     heads = canonical_heads(args.heads)
-    steps = args.steps or DEFAULT_STEPS
+    steps = args.steps if args.steps is not None else DEFAULT_STEPS
+    out = Path(args.out).expanduser()
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {args.out} is an existing file; --out names a folder for the prediction files")
+    check_writable(out, directory=True, what="output folder")
     grid = FeatureGrid.load(args.grid)
     predictor = Predictor.load(args.checkpoint, device=args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise write_error(out, exc, "create the output folder") from None
     with Progress(total=1.0, description="predict") as progress:
         if args.sweep is not None:
             sweep = predict_sweep(predictor, grid, count=args.sweep, seed=args.seed, heads=heads, steps=steps,
@@ -78,17 +84,17 @@ def run(args) -> int:
                             "classes": {int(c): int(n) for c, n in zip(*np.unique(m.material, return_counts=True))}}
         if pred.lbs is not None:
             b = pred.lbs[i]
-            np.savez_compressed(out / f"lbs_{tag}.npz", format="unipixie.lbs_prediction/1", alpha=a, params=b.params,
+            save_npz(out / f"lbs_{tag}.npz", format="unipixie.lbs_prediction/1", alpha=a, params=b.params,
                                 E=b.E, nu=b.nu, occupancy=np.packbits(grid.occupancy.ravel()))
             entry["lbs"] = {"file": f"lbs_{tag}.npz", "median_E_Pa": float(np.median(b.E))}
         if pred.spring_mass is not None:
             s = pred.spring_mass[i]
-            np.savez_compressed(out / f"spring_{tag}.npz", format="unipixie.spring_prediction/1", alpha=a,
+            save_npz(out / f"spring_{tag}.npz", format="unipixie.spring_prediction/1", alpha=a,
                                 stiffness=s.stiffness, softness=np.float64(s.softness))
             entry["spring_mass"] = {"file": f"spring_{tag}.npz", "median_stiffness": float(np.median(s.stiffness)),
                                     "softness": s.softness}
         summary["alphas"].append(entry)
-    (out / "prediction.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_json(out / "prediction.json", summary)
     for e in summary["alphas"]:
         line = f"alpha {e['alpha']:.3f}:"
         if "mpm" in e:

@@ -56,7 +56,9 @@ import numpy as np
 from ...solvers import effects as fx
 from ..errors import SimulationDiverged, UserError
 from ..progress import Progress, silent
+from . import sanity
 from . import significance as sig
+from . import verdict as verdict_mod
 from .batching import BatchGate
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
@@ -213,6 +215,8 @@ class Diagnosis:
     contact_times: list = field(default_factory=list)
     settings: dict = field(default_factory=dict)
     horizon: Optional[float] = None
+    verdict: dict = field(default_factory=dict)
+    """:func:`.verdict.for_diagnosis`: code, explained, sentence (set when the diagnosis ends)."""
 
     @property
     def candidates(self) -> list:
@@ -245,6 +249,7 @@ class Diagnosis:
             "identified": self.identified,
             "history": self.history,
             # extras
+            "verdict": self.verdict or verdict_mod.for_diagnosis(self),
             "measurement": self.measurement_source,
             "noise_sigma": _f(self.noise_sigma),
             "noise_rmse": _f(self.noise_rmse),
@@ -277,7 +282,8 @@ class Diagnosis:
         for c in self.candidates:
             lines.append(f"  {c.name:18s} rmse {1e3 * c.rmse:8.2f} mm  explained {100 * c.explained:5.1f} %  "
                          f"{'significant' if c.significant else '-'}  {_fmt_params(c.effect)}")
-        lines.append(f"identified: {self.identified or 'none (the model already explains these measurements)'}")
+        lines.append(f"identified: {self.identified or 'none'}")
+        lines.append(f"verdict: {(self.verdict or verdict_mod.for_diagnosis(self))['sentence']}")
         lines.append("history: " + " → ".join(f"{'+'.join(h['effects']) or 'base'} {1e3 * h['rmse']:.2f} mm"
                                                for h in self.history))
         bm = self.base_material
@@ -656,7 +662,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
-             predictive_window: bool = True, parallel: Optional[bool] = None,
+             predictive_window: bool = True, parallel: Optional[bool] = None, allow_long: bool = False,
              progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
@@ -673,7 +679,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
     round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
     differently.  out_dir: write
-    ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
+    ``diagnosis.json``, the pictures and ``diagnosis.html`` there (checked for writing before any simulation).
+    allow_long: accept measurements whose times look like milliseconds and diagnoses past the long-job
+    limit (:mod:`.sanity` refuses them otherwise, as it refuses scenarios that contradict the measurement).
     Returns a :class:`Diagnosis`.
     """
     from ...solvers import api
@@ -695,15 +703,20 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         raise UserError(f"{measurement.source or 'measurement'}: a diagnosis needs at least 4 instants, "
                         f"got {measurement.frame_count}")
     material = measurement.require_material()
-    body = measurement.body()
-    warnings = list(measurement.warnings) + list(body.warnings)
+    if out_dir is not None:
+        from .report import check_out_dir
+
+        check_out_dir(out_dir)
     sigma = estimate_noise(measurement.positions)
+    if settings is None:
+        settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
     say(f"measurement: {measurement.summary()}")
+    sane_warnings = sanity.check(measurement, solver, settings, sigma=sigma, allow_long=allow_long, log=say)
+    body = measurement.body()
+    warnings = list(measurement.warnings) + sane_warnings + list(body.warnings)
     say(f"noise estimated from the tracks: σ = {1e3 * sigma:.3g} mm per coordinate "
         f"(noise floor RMSE {1e3 * noise_rmse(sigma):.3g} mm)")
     frame_times = measurement.times - measurement.times[0]
-    if settings is None:
-        settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
     progress.set_status(f"preparing the {solver} simulation")
     sim = api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
                       device=device, settings=settings, progress=None)
@@ -890,7 +903,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             choice = cands[0]
             rnd.added_by = "ranking"
         if choice is None:
-            say("   nothing significant remains: the model explains these measurements")
+            say("   nothing significant remains")
             break
         rnd.added = choice.effect
         added.append(choice.effect)
@@ -932,7 +945,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                        added=added, E_scale=ref.scale, identified=identified, wall_s=0.0,
                        simulations=P.evaluations, ground_height=measurement.scenario.ground_height,
                        warnings=warnings, contact_times=contact, settings=settings_used, horizon=horizon)
+    result.verdict = verdict_mod.for_diagnosis(result)
     result.wall_s = time.perf_counter() - t_start
+    say(f"verdict: {result.verdict['sentence']}")
     say(f"done in {result.wall_s:.1f} s ({P.evaluations} simulations, {P.sim_seconds:.1f} s simulating)")
     if out_dir is not None:
         from . import report

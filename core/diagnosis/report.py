@@ -21,12 +21,11 @@ from __future__ import annotations
 import html
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic_io import OutputLock, check_writable, save_figure, write_text
 from ..errors import UserError
 
 JSON_NAME = "diagnosis.json"
@@ -71,6 +70,16 @@ def validate_report(doc: dict) -> None:
             raise UserError("diagnosis report: key 'identified' must be the best significant candidate or null")
     elif any(c["significant"] for c in doc["candidates"]):
         raise UserError("diagnosis report: 'identified' is null although a candidate is significant")
+    v = doc.get("verdict")
+    if v is not None:  # an extra key (reports made before it existed have none)
+        from .verdict import CODES
+
+        if not (isinstance(v, dict) and v.get("code") in CODES and isinstance(v.get("sentence"), str)
+                and isinstance(v.get("explained"), bool)):
+            raise UserError(f"diagnosis report: key 'verdict' must hold code (one of {', '.join(CODES)}), explained "
+                            "and sentence")
+        if (v["code"] in ("effect_found", "effect_found_partly")) != (ident is not None):
+            raise UserError("diagnosis report: key 'verdict' disagrees with 'identified'")
     h = doc["history"]
     if not isinstance(h, list) or not h:
         raise UserError("diagnosis report: key 'history' must be a non-empty list")
@@ -102,19 +111,14 @@ def _clean(x):
     return x
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; a report is an ordinary file
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+REPORT_BYTES = 4_000_000
+"""About how much a report takes on disk (six pictures, the JSON and the page): checked before a diagnosis."""
+
+
+def check_out_dir(out_dir) -> Path:
+    """Check, before any simulation, that the report can be written into ``out_dir`` (a folder that exists
+    or can be made, writable, with room); raises :class:`UserError` naming the cause."""
+    return check_writable(out_dir, REPORT_BYTES, directory=True, what="report folder")
 
 
 # --------------------------------------------------------------------------- pictures
@@ -129,7 +133,7 @@ def _figure(w: float, h: float):
 
 def _save(fig, path: Path) -> None:
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def _labels(d) -> list[str]:
@@ -200,7 +204,7 @@ def plot_error_on_shape(d, path: Path) -> None:
         cb = fig.colorbar(sc, ax=fig.axes, shrink=0.7)
         cb.set_label("per-point RMSE [mm]")
     fig.suptitle("Rest shape coloured by per-point error (grey: never observed)", fontsize=10)
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def plot_worst_paths(d, path: Path, count: int = 3) -> None:
@@ -345,8 +349,10 @@ def render_html(d, doc: dict) -> str:
         ("candidates.png", "Share of the base-refitted squared error each candidate explains."),
         ("regions.png", "Error per region of the solid."),
     ))
-    verdict = (f"The missing effect is <b>{e(ident)}</b>." if ident else
-               "No effect is needed: <b>the model already explains these measurements</b> (identified: null).")
+    v = doc.get("verdict") or {}
+    verdict = (f"The missing effect is <b>{e(ident)}</b>." if ident else "No effect of the registry is significant "
+               "(identified: null).") + (f" <b>{e(v['sentence'][0].upper() + v['sentence'][1:])}.</b>"
+                                         if v.get("sentence") else "")
     ru_txt = (f"Runner-up: <b>{e(ru['effect'])}</b> at {_fmt(ru['rmse'], 'mm', 1e3)} "
               f"(likelihood-ratio gap {_fmt(ru['gap_likelihood_ratio'])}, RMSE ratio {_fmt(ru['rmse_ratio'])}). "
               "A good fit is not proof of the mechanism: when the true term is missing from the library, "
@@ -402,11 +408,25 @@ Worst region: {e(d.baseline.regions[0].name) if d.baseline.regions else '–'}.<
 
 # --------------------------------------------------------------------------- writer
 def write_report(d, out_dir) -> dict:
-    """Write ``diagnosis.json``, the pictures and ``diagnosis.html`` into ``out_dir``; returns their paths."""
+    """Write ``diagnosis.json``, the pictures and ``diagnosis.html`` into ``out_dir``; returns their paths.
+
+    Every file is written atomically (:mod:`unipixie.core.atomic_io`); the JSON last but one and the
+    page last, so a report whose ``diagnosis.html`` exists is complete.  A second run writing the same
+    folder at the same time is refused (:class:`~unipixie.core.atomic_io.OutputLock`)."""
     out = Path(out_dir).expanduser()
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a directory; give --out a directory")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        from ..atomic_io import write_error
+
+        raise write_error(out, exc, "create the report folder") from None
+    with OutputLock(out / JSON_NAME, "report"):
+        return _write_report(d, out)
+
+
+def _write_report(d, out: Path) -> dict:
     doc = _clean(d.to_json())
     validate_report(doc)
     paths = {}
@@ -419,9 +439,9 @@ def write_report(d, out_dir) -> dict:
     doc["pictures"] = list(PICTURES)
     doc["html"] = HTML_NAME
     jp = out / JSON_NAME
-    _write_atomic(jp, json.dumps(doc, indent=2, default=_json_default, allow_nan=False) + "\n")
+    write_text(jp, json.dumps(doc, indent=2, default=_json_default, allow_nan=False) + "\n")
     hp = out / HTML_NAME
-    _write_atomic(hp, render_html(d, doc))
+    write_text(hp, render_html(d, doc))
     paths["json"] = jp
     paths["html"] = hp
     return paths
@@ -433,8 +453,10 @@ def load_report(path) -> dict:
     if p.is_dir():
         p = p / JSON_NAME
     try:
-        doc = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        doc = json.loads(p.read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError) as exc:
         raise UserError(f"{p}: cannot read the diagnosis report ({exc})") from None
+    if not isinstance(doc, dict):
+        raise UserError(f"{p}: a diagnosis report is a JSON object")
     validate_report(doc)
     return doc

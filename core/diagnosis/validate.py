@@ -139,6 +139,7 @@ def run_case(case, solver: str = "spring_mass", *, cache_dir: Path, out_dir: Opt
     truth = _truth_effects(m)
     hidden = truth[0]["effect"] if truth else None
     t0 = time.perf_counter()
+    diagnose_kwargs.setdefault("allow_long", True)  # a validation run is long on purpose: no cost refusal
     d = diagnose.diagnose(m, solver, out_dir=out_dir, settings=settings, device=device, max_additions=max_additions,
                           **diagnose_kwargs)
     wall = time.perf_counter() - t0

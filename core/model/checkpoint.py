@@ -48,9 +48,9 @@ def _replace(tmp: Path, final: Path) -> None:
 
 
 def _write_json(path: Path, doc: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, default=str) + "\n")
-    _replace(tmp, path)
+    from ..atomic_io import write_json
+
+    write_json(path, doc, default=str)
 
 
 def is_checkpoint(directory) -> bool:
@@ -73,12 +73,11 @@ def save_model(model: UniPixieModel, directory, dtype: Optional[torch.dtype] = N
             v = v.to(dtype)
         tensors[k] = v.contiguous().cpu()
     meta = {"format": WEIGHTS_FORMAT, "config": json.dumps(model.cfg.to_dict()), "info": json.dumps(info or {}, default=str)}
-    tmp = d / (MODEL_FILE + ".tmp")
-    save_file(tensors, str(tmp), metadata=meta)
-    _replace(tmp, d / MODEL_FILE)
-    tmpc = d / (CONFIG_FILE + ".tmp")
-    model.cfg.save(tmpc)
-    _replace(tmpc, d / CONFIG_FILE)
+    from ..atomic_io import atomic_path
+
+    with atomic_path(d / MODEL_FILE) as tmp:
+        save_file(tensors, str(tmp), metadata=meta)
+    model.cfg.save(d / CONFIG_FILE)
     return d
 
 

@@ -194,8 +194,10 @@ class ModelConfig:
         return ModelConfig(**d)
 
     def save(self, path) -> Path:
+        from ..atomic_io import write_json
+
         path = Path(path)
-        path.write_text(json.dumps({"format": CONFIG_FORMAT, "config": self.to_dict()}, indent=2) + "\n")
+        write_json(path, {"format": CONFIG_FORMAT, "config": self.to_dict()})
         return path
 
     @classmethod

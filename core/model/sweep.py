@@ -145,8 +145,10 @@ class AlphaSweep:
     # ------------------------------------------------------------------ files
     def save(self, path) -> Path:
         path = Path(path)
+        from ..atomic_io import save_npz
+
         arrays = {k: getattr(self, k) for k in self._ARRAYS if getattr(self, k) is not None}
-        np.savez_compressed(path, format=SWEEP_FORMAT, alphas=self.alphas, occupancy=np.packbits(self.occupancy.ravel()),
+        save_npz(path, format=SWEEP_FORMAT, alphas=self.alphas, occupancy=np.packbits(self.occupancy.ravel()),
                             geometry=json.dumps(self.geometry.to_dict()), meta=json.dumps(self.meta, default=str),
                             **arrays)
         return path

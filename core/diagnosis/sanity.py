@@ -1,0 +1,185 @@
+"""Before a diagnosis fits anything: does the stated scenario fit the measurement at all?
+
+A diagnosis compares a simulation of the *stated* scenario with the measured motion.  When the
+scenario contradicts the measurement in a way no physical effect can repair — the solid starts
+below the ground, the clamp holds every point, the coordinates are in the wrong unit, the times
+are milliseconds — every effect fits badly and the ranking means nothing.  :func:`check` finds
+these before any simulation and refuses them (a :class:`~unipixie.core.errors.UserError` naming
+what is wrong and the remedy) or returns warnings for milder doubts.
+
+Checks (σ is the noise estimated from the tracks, ``size`` the rest shape's largest extent):
+
+* **size** — the solid must be 1 µm to 100 km across (the bake's range,
+  :data:`unipixie.core.bake.SIZE_REFUSE_RANGE`); outside 1 mm to 1 km a warning.
+* **ground** — no rest point more than ``max(5σ, 2 % of size)`` below the ground plane; no more than
+  5 % of the observed samples more than ``max(5σ, 5 % of size)`` below it (the measurement passes
+  through the stated ground).
+* **clamp** — the pinned box must leave some points free; the points it holds must not move in
+  the measurement by more than ``max(10σ, 5 % of size)`` (median; more than 8σ is a warning).
+* **reach** — no observed point farther from its rest position than ten times what the scenario can
+  explain (size + |v₀|·T + ½·2|g|·T² + |ω|·size·T): such values are unit mistakes or sentinels for
+  "not observed" (use NaN).
+* **time unit** — a median step of 0.5 s or more over 10 s or more looks like milliseconds or frame
+  numbers, not seconds.
+* **cost** — :mod:`unipixie.core.cost`: the whole diagnosis (about :data:`DIAGNOSIS_SIMULATIONS`
+  simulations) must stay below the long-job limit unless ``allow_long``.
+
+Time-unit and cost refusals can be overridden with ``allow_long`` (``--allow-long``); the others
+are contradictions and cannot.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..errors import UserError
+
+GROUND_TOLERANCE = (5.0, 0.02)
+"""A rest point may lie below the ground by ``max(5σ, 2 % of the size)`` (noise, a resting contact)."""
+PENETRATION_TOLERANCE = (5.0, 0.05)
+"""An observed sample counts as through the ground below ``max(5σ, 5 % of the size)``."""
+PENETRATION_SHARE = 0.05
+"""Refuse when more than this share of the observed samples is through the ground."""
+CLAMP_MOTION_REFUSE = (10.0, 0.05)
+"""Refuse when the clamped points move (median) by more than ``max(10σ, 5 % of the size)``."""
+CLAMP_MOTION_WARN = 8.0
+"""Warn when the clamped points move (median of their largest displacement) by more than 8σ (noise alone
+reaches ~4-5σ over a few hundred instants)."""
+REACH_FACTOR = 10.0
+"""An observed point may be at most this many times farther from its rest than the scenario explains."""
+MILLISECONDS_STEP = 0.5
+"""A median time step this long (s) or longer, ..."""
+MILLISECONDS_DURATION = 10.0
+"""... over at least this duration (s), looks like milliseconds or frame numbers."""
+DIAGNOSIS_SIMULATIONS = 300
+"""About how many simulations a diagnosis runs (measured: ~275 for the MPM benchmark diagnosis)."""
+
+
+def _where(measurement) -> str:
+    return f"{measurement.source}: " if measurement.source else ""
+
+
+def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = None, allow_long: bool = False,
+          log: Optional[Callable[[str], None]] = None) -> list[str]:
+    """Refuse (``UserError``) a measurement whose stated scenario cannot describe it; return warnings.
+
+    measurement: :class:`~unipixie.core.measurement.Measurement` (with a material); solver: the
+    diagnosing solver; settings: its settings (for the cost estimate); sigma: the noise σ (m) if
+    already estimated; allow_long: accept millisecond-looking times and long runs.
+    """
+    from ..bake import SIZE_REFUSE_RANGE, SIZE_WARN_RANGE
+    from .compare import estimate_noise
+
+    say = log or (lambda s: None)
+    src = _where(measurement)
+    warnings: list[str] = []
+    rest = np.asarray(measurement.rest, dtype=np.float64)
+    pos = np.asarray(measurement.positions, dtype=np.float64)
+    obs = measurement.observed
+    times = np.asarray(measurement.times, dtype=np.float64)
+    sc = measurement.scenario
+    extent = rest.max(0) - rest.min(0)
+    size = float(np.max(extent))
+    if sigma is None:
+        try:
+            sigma = estimate_noise(pos)
+        except UserError:
+            sigma = 0.0
+    sigma = float(sigma) if math.isfinite(sigma) else 0.0
+
+    # ---- size: a unit mistake shows here first --------------------------------------------------
+    lo, hi = SIZE_REFUSE_RANGE
+    if not (lo <= size <= hi):
+        raise UserError(f"{src}the solid is {size:.3g} m across (rest positions), outside what UniPixie simulates "
+                        f"({lo:g} m to {hi:g} m): positions must be in metres — convert millimetres (× 0.001) or "
+                        "check for sentinel values standing for 'not observed' (use NaN or an empty CSV cell)")
+    wlo, whi = SIZE_WARN_RANGE
+    if not (wlo <= size <= whi):
+        warnings.append(f"the solid is {size:.3g} m across: positions are read as metres")
+
+    # ---- reach: no point can be farther from rest than the scenario allows -----------------------
+    duration = float(times[-1] - times[0]) if len(times) > 1 else 0.0
+    g = float(np.linalg.norm(sc.gravity))
+    v0 = float(np.linalg.norm(sc.initial_velocity))
+    w0 = float(np.linalg.norm(sc.initial_angular_velocity))
+    reach = REACH_FACTOR * (size + v0 * duration + g * duration ** 2 + w0 * size * duration)
+    disp = np.linalg.norm(pos - rest[None], axis=-1)
+    disp = np.where(obs, disp, 0.0)
+    if disp.size and float(disp.max()) > reach:
+        t_i, p_i = np.unravel_index(int(np.argmax(disp)), disp.shape)
+        far = int(np.sum(disp > reach))
+        raise UserError(f"{src}point {p_i} at t = {times[t_i]:.6g} s is {disp[t_i, p_i]:.3g} m from its rest position "
+                        f"({far} sample(s) beyond {reach:.3g} m, ten times what the scenario's size, initial motion and "
+                        "gravity can explain over the measurement): a unit mistake or a sentinel value for 'not "
+                        "observed' — mark unobserved samples with NaN (an empty CSV cell)")
+
+    # ---- time unit ------------------------------------------------------------------------------
+    if len(times) > 1:
+        step = float(np.median(np.diff(times)))
+        if step >= MILLISECONDS_STEP and duration >= MILLISECONDS_DURATION:
+            msg = (f"{src}the times run over {duration:.6g} s in steps of {step:.3g} s ({1 / step:.3g} instants per "
+                   "second): they look like milliseconds or frame numbers, not seconds — divide milliseconds by 1000 "
+                   "(frame numbers by the frame rate)")
+            if not allow_long:
+                raise UserError(msg + "; if they really are seconds, pass --allow-long")
+            warnings.append(msg.removeprefix(src))
+
+    # ---- ground ----------------------------------------------------------------------------------
+    if sc.ground_height is not None:
+        h = float(sc.ground_height)
+        tol = max(GROUND_TOLERANCE[0] * sigma, GROUND_TOLERANCE[1] * size)
+        below = rest[:, 2] < h - tol
+        if np.all(rest[:, 2] < h - tol):
+            raise UserError(f"{src}the whole solid starts below the ground: the ground is at z = {h:g} m, the solid's "
+                            f"highest rest point at z = {rest[:, 2].max():.4g} m. Heights are metres with z up; fix "
+                            "scenario key 'ground' ({\"height\": z}) or set it to null (no ground)")
+        if np.any(below):
+            raise UserError(f"{src}{int(below.sum())} of {len(rest)} rest points lie more than {tol:.3g} m below the "
+                            f"ground (z = {h:g} m; lowest at z = {rest[:, 2].min():.4g} m): the solid cannot start "
+                            "inside the ground. Fix scenario key 'ground' ({\"height\": z}, metres, z up) or set it "
+                            "to null")
+        ptol = max(PENETRATION_TOLERANCE[0] * sigma, PENETRATION_TOLERANCE[1] * size)
+        z = np.where(obs, pos[..., 2], np.inf)
+        through = z < h - ptol
+        n_obs = max(int(obs.sum()), 1)
+        if through.sum() > PENETRATION_SHARE * n_obs:
+            raise UserError(f"{src}{100 * through.sum() / n_obs:.0f} % of the observed samples are more than "
+                            f"{ptol:.3g} m below the stated ground (z = {h:g} m): the measured solid passes through "
+                            "it, so the ground is not where the scenario says. Fix scenario key 'ground' or set it "
+                            "to null")
+
+    # ---- clamp -----------------------------------------------------------------------------------
+    if sc.pinned_box is not None:
+        pinned = sc.pinned_mask(rest)
+        if np.all(pinned):
+            raise UserError(f"{src}the clamp (scenario key 'pinned_box') holds all {len(rest)} tracked points, so the "
+                            "model cannot move at all while the measurement does; make the box cover only the "
+                            "clamped part (metres, [[xmin,ymin,zmin],[xmax,ymax,zmax]]) or remove it")
+        if np.any(pinned):
+            d = np.where(obs[:, pinned], disp[:, pinned], np.nan)
+            with np.errstate(all="ignore"):
+                moved = float(np.nanmedian(np.nanmax(d, axis=0))) if np.isfinite(d).any() else 0.0
+            limit = max(CLAMP_MOTION_REFUSE[0] * sigma, CLAMP_MOTION_REFUSE[1] * size)
+            if moved > limit:
+                raise UserError(f"{src}the {int(pinned.sum())} points inside the clamp (scenario key 'pinned_box') "
+                                f"move by {moved:.3g} m in the measurement (median of their largest displacement), "
+                                "but clamped material cannot move: the box is in the wrong place or too large")
+            if sigma > 0 and moved > CLAMP_MOTION_WARN * sigma:
+                warnings.append(f"the points inside the clamp move by {1e3 * moved:.3g} mm in the measurement "
+                                f"(median), {moved / sigma:.3g}× the noise σ: is the clamp box right?")
+
+    # ---- cost ------------------------------------------------------------------------------------
+    material = measurement.material
+    if material is not None and len(times) > 1:
+        from ..cost import estimate
+
+        est = estimate(f"this {solver} diagnosis", solver, size=size, times=times - times[0],
+                       material_spec=material, points=measurement.point_count, settings=settings,
+                       simulations=DIAGNOSIS_SIMULATIONS)
+        say(f"estimated cost: {est.describe()}")
+        est.check(allow_long, remedy="use fewer instants or a shorter measurement (measurement.subset), or a "
+                                     "coarser solver setting")
+    return warnings

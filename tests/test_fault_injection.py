@@ -1,0 +1,563 @@
+"""Fault injection: full disks, read-only outputs, links to inputs, corrupt and malicious files, Ctrl-C,
+concurrent writers and contradictory measurements.  Every case must end in one clear error (or a
+refusal with the remedy), never a traceback, a damaged input, a partial file under a final name or a
+false verdict.  All fast (no simulation runs)."""
+
+from __future__ import annotations
+
+import errno
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from unipixie.core import atomic_io, cli
+from unipixie.core.errors import (EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_INTERNAL_ERROR, EXIT_SIMULATION_FAILED,
+                                  SimulationDiverged, UserError, read_json)
+from unipixie.core.measurement import Measurement, MeasuredMaterial, load, load_csv
+from unipixie.solvers.scenario import Scenario
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _leftovers(folder: Path) -> list[str]:
+    """Temporary or lock files an interrupted write left behind."""
+    return [p.name for p in folder.iterdir() if atomic_io.is_temporary(p.name) or ".tmp" in p.name]
+
+
+# --------------------------------------------------------------------------- a small measurement
+CUBE = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (0.05, 0.15)], dtype=np.float64)
+CUBE_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+
+
+def _falling_cube(frames: int = 20, fps: float = 50.0, **scenario) -> Measurement:
+    """A cube falling freely for ``frames`` instants (z up, metres), the jelly material stated."""
+    t = np.arange(frames) / fps
+    pos = CUBE[None] + np.array([0.0, 0.0, 1.0])[None, None] * (-0.5 * 9.81 * t ** 2)[:, None, None]
+    pos = pos + np.random.default_rng(0).normal(0.0, 1e-4, pos.shape)
+    sc = Scenario(**{"ground_height": -1.0, **scenario})
+    return Measurement(positions=pos, times=t, scenario=sc, rest_positions=CUBE.copy(), faces=CUBE_FACES,
+                       material=MeasuredMaterial(2e5, 0.3, 1000.0))
+
+
+# --------------------------------------------------------------------------- full disk (simulated at write time)
+def _enospc_after(nbytes: int):
+    """A ``numpy.lib.format.write_array`` stand-in that writes ``nbytes`` of an archive member and then fails as a
+    full disk does."""
+
+    def fake(fp, array, *args, **kwargs):
+        fp.write(b"\x93NUMPY" + b"\0" * nbytes)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    return fake
+
+
+def test_full_disk_leaves_no_partial_file_and_keeps_the_old_one(tmp_path, monkeypatch):
+    m = _falling_cube()
+    target = tmp_path / "m.npz"
+    m.save(target)
+    before = target.read_bytes()
+    monkeypatch.setattr(np.lib.format, "write_array", _enospc_after(1000))
+    with pytest.raises(UserError) as info:
+        m.save(target)
+    msg = str(info.value)
+    assert str(target) in msg and "disk is full" in msg
+    assert target.read_bytes() == before  # the old file is untouched
+    assert _leftovers(tmp_path) == []
+    fresh = tmp_path / "new.npz"
+    with pytest.raises(UserError):
+        m.save(fresh)
+    assert not fresh.exists()  # nothing under the final name
+
+
+def test_full_disk_while_writing_a_material_field(tmp_path, monkeypatch):
+    from unipixie.core.types import GridGeometry, MaterialField
+
+    occ = np.zeros((4, 4, 4), bool)
+    occ[1:3, 1:3, 1:3] = True
+    geo = GridGeometry(resolution=4, origin=[0, 0, 0], voxel_size=0.25)
+    f = MaterialField.homogeneous(geo, occ, 1e5, 0.3, 1000.0)
+    monkeypatch.setattr(np.lib.format, "write_array", _enospc_after(50))
+    with pytest.raises(UserError, match="disk is full"):
+        f.save(tmp_path / "material_field_a0.500.npz")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_pc2_cut_off_by_a_file_size_limit_is_an_error_not_a_file(tmp_path):
+    """A real write failure (the process's file-size limit, EFBIG) in a child process: one line, exit 2."""
+    code = textwrap.dedent(f"""
+        import resource, signal, sys, numpy as np
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
+        from unipixie.core import cli, bake
+        def run(args):
+            bake.write_pc2({str(tmp_path / 'cache.pc2')!r}, np.zeros((50, 100, 3), np.float32))
+        sys.exit(cli.run_command(run, None, "bake"))
+    """)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == EXIT_BAD_INPUT, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "cache.pc2" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "cache.pc2").exists()
+    assert _leftovers(tmp_path) == []
+
+
+def test_a_truncated_write_is_caught_by_the_check(tmp_path):
+    with pytest.raises(UserError, match="cut off"):
+        with atomic_io.atomic_path(tmp_path / "x.bin", expected_size=100) as tmp:
+            tmp.write_bytes(b"x" * 60)
+    with pytest.raises(UserError, match="picture is incomplete"):
+        with atomic_io.atomic_path(tmp_path / "x.png") as tmp:
+            tmp.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40)
+    with pytest.raises(UserError, match="cut off"):
+        with atomic_io.atomic_path(tmp_path / "x.blend") as tmp:
+            tmp.write_bytes(b"BLENDER-v500REND" + b"\0" * 500)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_not_enough_room_is_refused_before_the_work(tmp_path):
+    with pytest.raises(UserError, match="not enough free space"):
+        atomic_io.check_writable(tmp_path / "big.blend", need_bytes=10 ** 18)
+
+
+# --------------------------------------------------------------------------- read-only outputs
+def test_read_only_file_system_is_found_before_the_work(tmp_path, monkeypatch):
+    def erofs(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(atomic_io.tempfile, "mkstemp", erofs)
+    with pytest.raises(UserError, match="read-only"):
+        atomic_io.check_writable(tmp_path / "out.blend")
+    with pytest.raises(UserError, match="read-only"):
+        atomic_io.write_text(tmp_path / "a.json", "{}")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_folder(tmp_path):  # pragma: no cover - CI runs as a user
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(UserError, match="permission denied"):
+            atomic_io.check_writable(ro / "out.npz")
+    finally:
+        ro.chmod(0o755)
+
+
+def test_read_only_existing_output_is_refused(tmp_path):
+    p = tmp_path / "out.npz"
+    p.write_bytes(b"old")
+    p.chmod(0o444)
+    if os.access(p, os.W_OK):  # root
+        pytest.skip("root may write read-only files")
+    with pytest.raises(UserError, match="read-only"):  # pragma: no cover
+        atomic_io.check_writable(p)
+
+
+# --------------------------------------------------------------------------- links
+def test_symlinked_and_hard_linked_output_to_the_input_is_refused(tmp_path):
+    inp = tmp_path / "scene.blend"
+    inp.write_bytes(b"precious")
+    link = tmp_path / "out.blend"
+    link.symlink_to(inp)
+    with pytest.raises(UserError, match="symbolic link"):
+        atomic_io.refuse_overwriting_inputs(link, [inp])
+    hard = tmp_path / "hard.blend"
+    os.link(inp, hard)
+    with pytest.raises(UserError, match="hard link"):
+        atomic_io.refuse_overwriting_inputs(hard, [inp])
+    atomic_io.refuse_overwriting_inputs(tmp_path / "other.blend", [inp])  # a different file is fine
+
+    from unipixie.core.bake import BakeJob, check_job_outputs
+
+    for out in (link, hard, inp):
+        with pytest.raises(UserError, match="would overwrite its input scene"):
+            check_job_outputs([BakeJob(scene=str(inp), object="Cube", out=str(out))])
+    assert inp.read_bytes() == b"precious"
+
+
+def test_measure_convert_onto_its_own_input_through_a_link_is_refused(tmp_path, capsys):
+    m = _falling_cube()
+    src = tmp_path / "m.npz"
+    m.save(src)
+    before = src.read_bytes()
+    link = tmp_path / "link.npz"
+    link.symlink_to(src)
+    status = cli.main(["measure", "convert", str(src), str(link), "--force"])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "would overwrite the input" in err
+    assert src.read_bytes() == before
+
+
+def test_writing_through_a_symlink_replaces_the_target_and_keeps_the_link(tmp_path):
+    real = tmp_path / "real.json"
+    real.write_text("{}")
+    link = tmp_path / "link.json"
+    link.symlink_to(real)
+    atomic_io.write_json(link, {"a": 1})
+    assert link.is_symlink() and json.loads(real.read_text()) == {"a": 1}
+
+
+# --------------------------------------------------------------------------- corrupt and malicious files
+def test_corrupt_and_malicious_archives_are_refused(tmp_path):
+    from unipixie.core.types import MaterialField
+
+    cut = tmp_path / "cut.npz"
+    good = tmp_path / "good.npz"
+    _falling_cube().save(good)
+    cut.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(UserError, match="not a readable"):
+        load(cut)
+    evil = tmp_path / "evil.npz"  # an object array would need pickle: never loaded
+    np.savez(evil, positions=np.array([{"x": 1}], dtype=object), times=np.zeros(2), scenario=np.array("{}"))
+    with pytest.raises(UserError):
+        load(evil)
+    noE = tmp_path / "noE.npz"
+    np.savez(noE, format="unipixie.material_field/1", occupancy=np.packbits(np.ones(64, bool)),
+             geometry=json.dumps({"resolution": 4, "origin": [0, 0, 0], "voxel_size": 0.25}), nu=np.full(64, 0.3), density=np.full(64, 1e3),
+             material=np.zeros(64, np.int16), alpha=np.float64(0.5), meta="{}")
+    with pytest.raises(UserError, match="'E'"):
+        MaterialField.load(noE)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(os.urandom(300))
+    with pytest.raises(UserError):
+        MaterialField.load(junk)
+
+
+def test_corrupt_json_files_are_one_line_errors(tmp_path):
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100000 + "]" * 100000)
+    with pytest.raises(UserError, match="not valid JSON"):
+        read_json(deep)
+    binary = tmp_path / "bin.json"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(UserError, match="not valid JSON"):
+        read_json(binary)
+    from unipixie.core.diagnosis.report import load_report
+
+    arr = tmp_path / "diagnosis.json"
+    arr.write_text("[1, 2]")
+    with pytest.raises(UserError, match="JSON object"):
+        load_report(arr)
+
+
+def test_cut_off_blend_is_refused_by_its_check(tmp_path):
+    p = tmp_path / "x.blend"
+    p.write_bytes(atomic_io.ZSTD_MAGIC + b"\0" * 100)
+    with pytest.raises(UserError, match="cut off"):
+        atomic_io.check_blend(p)
+    p.write_bytes(b"not a blend at all")
+    with pytest.raises(UserError, match="not a .blend"):
+        atomic_io.check_blend(p)
+
+
+# --------------------------------------------------------------------------- CSV by column name, lossless round trip
+def test_csv_columns_are_read_by_name_in_any_order(tmp_path):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    rows = (tmp_path / "m.csv").read_text().splitlines()
+    swapped = ["T,ID,Z,Y,X"] + [",".join([r.split(",")[i] for i in (0, 1, 4, 3, 2)]) for r in rows[1:]]
+    (tmp_path / "s.csv").write_text("\n".join(swapped) + "\n")
+    back = load_csv(tmp_path / "s.csv", scenario=tmp_path / "m.json")
+    np.testing.assert_array_equal(back.positions, m.positions)
+    (tmp_path / "bad.csv").write_text("t,id,x,y\n0,0,1,2\n")
+    with pytest.raises(UserError, match="lacks column"):
+        load_csv(tmp_path / "bad.csv")
+
+
+def test_a_fractional_point_id_is_refused(tmp_path):
+    (tmp_path / "ids.csv").write_text("t,id,x,y,z\n0,1,0,0,0\n0,1.5,0,0,1\n0.1,1,0,0,0\n")
+    with pytest.raises(UserError, match="'1.5' is not a whole number"):
+        load_csv(tmp_path / "ids.csv")
+
+
+def test_csv_round_trip_keeps_faces_rest_and_unobserved_points(tmp_path):
+    m = _falling_cube()
+    m.positions[:, 5] = np.nan  # a point never observed
+    m.extra_arrays["synth_truth"] = np.array("{}")
+    path, dropped = m.save_csv(tmp_path / "m.csv")
+    assert dropped == ["synth_truth"]
+    back = load(path)
+    assert back.point_count == m.point_count
+    np.testing.assert_array_equal(back.positions, m.positions)
+    np.testing.assert_array_equal(back.rest, m.rest)
+    np.testing.assert_array_equal(back.faces, m.faces)
+    np.testing.assert_array_equal(back.times, m.times)
+
+
+def test_scenario_numbers_as_text_are_refused_in_every_key():
+    base = {"format": "unipixie.measurement/1"}
+    for key, value in (("gravity", ["0", "0", "-9.81"]), ("ground", {"height": "0"}),
+                       ("initial_velocity", [0, "1", 0]), ("pinned_box", [[0, 0, 0], ["1", 1, 1]])):
+        with pytest.raises(UserError, match=key):
+            Scenario.from_dict({**base, key: value})
+
+
+# --------------------------------------------------------------------------- no confident nonsense
+@pytest.mark.parametrize("case", ["ground_above", "all_pinned", "times_1e9", "sentinels", "milliseconds"])
+def test_contradictory_measurements_are_refused_before_fitting(case):
+    from unipixie.core.diagnosis import sanity
+
+    m = _falling_cube()
+    if case == "ground_above":
+        m = _falling_cube(ground_height=10.0)
+    elif case == "all_pinned":
+        m = _falling_cube(pinned_box=[[-1, -1, -1], [1, 1, 1]])
+    elif case == "times_1e9":
+        m = Measurement(positions=m.positions * 1e9, times=m.times, scenario=m.scenario, rest_positions=m.rest * 1e9,
+                        faces=m.faces, material=m.material)
+    elif case == "sentinels":
+        m.positions[5:7, :3] = -999999999.0
+    elif case == "milliseconds":
+        m = Measurement(positions=m.positions, times=m.times * 1000.0, scenario=m.scenario, rest_positions=m.rest,
+                        faces=m.faces, material=m.material)
+    with pytest.raises(UserError) as info:
+        sanity.check(m, "spring_mass")
+    assert len(str(info.value).splitlines()) == 1
+    sanity.check(_falling_cube(), "spring_mass")  # the honest measurement passes
+
+
+def test_milliseconds_can_be_forced_with_allow_long():
+    from unipixie.core.diagnosis import sanity
+
+    m = _falling_cube(frames=40, fps=1.0)  # 39 "seconds" of a solid at rest: the times were frame numbers
+    still = np.repeat(m.rest[None], 40, axis=0)
+    m2 = Measurement(positions=still, times=m.times, scenario=Scenario(ground_height=None, gravity=[0, 0, 0]),
+                     rest_positions=m.rest, faces=m.faces, material=m.material)
+    with pytest.raises(UserError, match="milliseconds"):
+        sanity.check(m2, "lbs")
+    warnings = sanity.check(m2, "lbs", allow_long=True)
+    assert any("milliseconds" in w for w in warnings)
+
+
+def test_a_model_far_above_the_noise_never_explains_the_measurement():
+    from unipixie.core.diagnosis import verdict
+
+    far = verdict.decide(0.122, 0.0024, None)
+    assert far["code"] == "not_explained" and not far["explained"]
+    assert "the model explains" not in far["sentence"] and "does NOT explain" in far["sentence"]
+    partly = verdict.decide(0.05, 0.002, "linear_drag", added=["linear_drag"])
+    assert partly["code"] == "effect_found_partly" and "does not explain" in partly["sentence"]
+    near = verdict.decide(0.003, 0.002, None)
+    assert near["code"] == "explained" and "explains these measurements" in near["sentence"]
+    assert verdict.decide(float("nan"), 0.002, None)["code"] == "not_explained"
+
+
+# --------------------------------------------------------------------------- long jobs
+def test_absurd_frame_counts_need_allow_long():
+    from unipixie.core.cost import estimate, frames_estimate
+    from unipixie.solvers.material_sampling import HomogeneousMaterial
+
+    with pytest.raises(UserError, match="--allow-long"):
+        frames_estimate("baking 'Cube' over frames 1-1000000", 1_000_000).check()
+    frames_estimate("x", 1_000_000).check(allow_long=True)
+    frames_estimate("x", 240).check()
+    est = estimate("a stiff bake", "spring_mass", size=1.0, times=np.arange(2400) / 24.0,
+                   material_spec=HomogeneousMaterial(1e11, 0.3, 1000.0, "metal"), points=1000)
+    assert est.total_substeps > 1e6 and "substeps" in est.describe()
+    with pytest.raises(UserError, match="substeps"):
+        est.check()
+
+
+# --------------------------------------------------------------------------- quiet reinterpretations
+@pytest.mark.parametrize("argv, needle", [
+    (["measure", "synth", "--out", "{tmp}/m.npz", "--points", "0"], "--points"),
+    (["measure", "synth", "--out", "{tmp}/m.npz", "--duration", "0"], "--duration"),
+])
+def test_impossible_values_are_refused_not_reinterpreted(argv, needle, tmp_path, capsys):
+    status = cli.main([a.replace("{tmp}", str(tmp_path)) for a in argv])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "Traceback" not in err
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_predict_refuses_zero_steps_and_a_file_as_out(tmp_path, capsys):
+    grid = tmp_path / "grid.npz"
+    grid.write_bytes(b"x")
+    with pytest.raises(SystemExit) as info:
+        cli.main(["predict", str(grid), "--steps", "0", "--out", str(tmp_path / "o")])
+    assert info.value.code == EXIT_BAD_INPUT
+    capsys.readouterr()
+    status = cli.main(["predict", str(grid), "--out", str(grid)])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "existing file" in err
+    assert grid.read_bytes() == b"x"
+
+
+# --------------------------------------------------------------------------- exit codes, crash log, Ctrl-C
+def test_exit_codes_follow_one_table(capsys):
+    def raiser(exc):
+        def fn(args):
+            raise exc
+        return fn
+
+    assert cli.run_command(raiser(UserError("bad")), None, "x") == EXIT_BAD_INPUT
+    assert cli.run_command(raiser(SimulationDiverged("blew up")), None, "x") == EXIT_SIMULATION_FAILED
+    assert cli.run_command(raiser(KeyboardInterrupt()), None, "x") == EXIT_CANCELLED
+    assert cli.run_command(raiser(OSError(errno.ENOSPC, "No space left on device", "/x/y")), None, "x") == EXIT_BAD_INPUT
+    os.environ.pop("UNIPIXIE_TRACEBACK", None)
+    assert cli.run_command(raiser(ZeroDivisionError("bug")), None, "x") == EXIT_INTERNAL_ERROR
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "internal error" in err
+    log = Path(err.strip().splitlines()[-1].split("the details are in ")[-1])
+    assert log.is_file() and "ZeroDivisionError" in log.read_text()
+
+
+def test_ctrl_c_cancels_cleanly_with_status_130(tmp_path):
+    target = tmp_path / "out.bin"
+    code = textwrap.dedent(f"""
+        import sys, time
+        from unipixie.core import atomic_io, cli
+        def run(args):
+            with atomic_io.atomic_path({str(target)!r}, min_size=0) as tmp:
+                tmp.write_bytes(b"partial")
+                print("ready", flush=True)
+                time.sleep(30)
+        sys.exit(cli.run_command(run, None, "bake"))
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == EXIT_CANCELLED, err
+    assert "cancelled" in err and "Traceback" not in err
+    assert not target.exists() and _leftovers(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- concurrent writers
+def test_a_second_writer_of_the_same_output_is_refused(tmp_path):
+    out = tmp_path / "baked.blend"
+    with atomic_io.OutputLock(out):
+        with pytest.raises(UserError, match=f"process {os.getpid()}"):
+            atomic_io.OutputLock(out).acquire()
+        code = (f"from unipixie.core import atomic_io\n"
+                f"atomic_io.OutputLock({str(out)!r}).acquire()\n")
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+        assert res.returncode != 0 and "being written by another UniPixie run" in res.stderr
+    with atomic_io.OutputLock(out):  # released: free again
+        pass
+    assert _leftovers(tmp_path) == []
+
+
+def test_a_report_folder_in_use_is_refused(tmp_path):
+    from unipixie.core.diagnosis import report
+
+    with atomic_io.OutputLock(tmp_path / report.JSON_NAME, "report"):
+        with pytest.raises(UserError, match="being written"):
+            report.write_report(object(), tmp_path)
+
+
+def test_blend_save_on_a_full_disk_leaves_the_old_file(tmp_path):
+    """Blender's own save cut off by the file-size limit (a full disk as Blender sees it): the bake's writer
+    reports it and keeps the previous output; nothing partial under the final name."""
+    pytest.importorskip("bpy")
+    out = tmp_path / "baked.blend"
+    out.write_bytes(b"the previous bake")
+    code = textwrap.dedent(f"""
+        import resource, signal, sys
+        import bpy
+        from unipixie.core import cli
+        from unipixie.core.blender_io.blend_file import save_blend
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=256, ring_count=128)
+        save_blend({str(tmp_path / 'ok.blend')!r})
+        save_blend({str(tmp_path / 'ok.blend')!r})  # over an existing file: no backup left beside it
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))
+        sys.exit(cli.run_command(lambda args: save_blend({str(out)!r}), None, "bake"))
+    """)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": os.environ.get("PYTHONPATH", "")})
+    assert res.returncode == EXIT_BAD_INPUT, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr and str(out) in res.stderr
+    assert out.read_bytes() == b"the previous bake"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["baked.blend", "ok.blend"]
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A real, nearly full 256 KB file system (tmpfs) where the machine allows mounting one (root in a
+    container or VM); skipped elsewhere — the simulated-ENOSPC tests above cover the same paths."""
+    if os.name != "posix" or os.geteuid() != 0:
+        pytest.skip("mounting a small file system needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip("this machine does not allow mounting a tmpfs")
+    try:
+        (mnt / "fill").write_bytes(b"\0" * (236 * 1024))
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def test_a_real_full_disk(full_disk, tmp_path):
+    m = _falling_cube(frames=200)
+    (full_disk / "old.npz").write_bytes(b"old")
+    for write in (lambda: m.save(full_disk / "old.npz"), lambda: m.save_csv(full_disk / "m.csv")):
+        with pytest.raises(UserError, match="disk is full|cut off"):
+            write()
+    assert (full_disk / "old.npz").read_bytes() == b"old"
+    assert sorted(p.name for p in full_disk.iterdir()) == ["fill", "old.npz"]
+    with pytest.raises(UserError, match="not enough free space"):
+        atomic_io.check_writable(full_disk / "baked.blend", 1_000_000)
+    if importlib.util.find_spec("bpy") is None:
+        return
+    scene = tmp_path / "scene.blend"
+    code = textwrap.dedent(f"""
+        import sys
+        import bpy
+        from unipixie.core import cli
+        from unipixie.core.blender_io.blend_file import save_blend
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=128, ring_count=64)
+        sys.exit(cli.run_command(lambda args: save_blend({str(full_disk / 'old.npz').replace('.npz', '.blend')!r}),
+                                 None, "bake"))
+    """)
+    (full_disk / "old.blend").write_bytes(b"old")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == EXIT_BAD_INPUT and "old.blend" in res.stderr, res.stderr[-2000:]
+    assert (full_disk / "old.blend").read_bytes() == b"old"
+    assert sorted(p.name for p in full_disk.iterdir()) == ["fill", "old.blend", "old.npz"]
+    del scene
+
+
+def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
+    code = textwrap.dedent("""
+        import sys, time
+        from unipixie.core import cli
+        def run(args):
+            try:
+                print("ready", flush=True)
+                time.sleep(30)
+            finally:
+                time.sleep(1.5)  # cleaning up
+        sys.exit(cli.run_command(run, None, "bake"))
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == EXIT_CANCELLED
+    assert "cleaning up" in err and err.strip().endswith("unipixie bake: cancelled") and "Traceback" not in err
