@@ -697,7 +697,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     material = measurement.require_material()
     body = measurement.body()
     warnings = list(measurement.warnings) + list(body.warnings)
-    sigma = estimate_noise(measurement.positions)
+    sigma = estimate_noise(measurement.positions, measurement.rest)
     say(f"measurement: {measurement.summary()}")
     say(f"noise estimated from the tracks: σ = {1e3 * sigma:.3g} mm per coordinate "
         f"(noise floor RMSE {1e3 * noise_rmse(sigma):.3g} mm)")
