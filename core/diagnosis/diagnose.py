@@ -59,7 +59,7 @@ from ..progress import Progress, silent
 from . import significance as sig
 from .batching import BatchGate
 from .contact_fit import fit_base_contact
-from .resolution import apply_floor, check_resolution
+from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
                   grid_search, levenberg_marquardt, uncertainty)
@@ -673,7 +673,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
              predictive_window: bool = True, parallel: Optional[bool] = None,
-             progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
+             resolution_budget_s: float = DEFAULT_BUDGET_S, progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
     effects_on: effects already on in the current model (effect objects or ``"name:k=v"`` specs);
@@ -688,7 +688,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     costs about what one does there), off on the CPU (where a batch costs the sum of its environments).
     With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
     round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
-    differently.  out_dir: write
+    differently.  resolution_budget_s: seconds of simulation the rest of the diagnosis may spend with a finer
+    model when the fitted base model is not resolved (:mod:`.resolution`; 0: never switch, enforce the floor).
+    out_dir: write
     ``diagnosis.json``, the pictures and ``diagnosis.html`` there.
     Returns a :class:`Diagnosis`.
     """
@@ -779,7 +781,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         P, P.model_effects(ref.scale, ref.effects, ref.fixed),
         lambda s: api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
                               device=device, settings=s, progress=None),
-        sigma, int(progress.total) - P.evaluations, say=say)
+        sigma, int(progress.total) - P.evaluations, budget_s=resolution_budget_s, say=say)
     if finer_sim is not None:  # from here on the finer model, its E/ρ refitted
         P.sim, settings = finer_sim, finer_sim.settings
         bf, full_residual = _fit_base(P, base_fit_param, lm_iterations, progress, start=np.array([math.log(ref.scale)]))
