@@ -58,11 +58,11 @@ from ..errors import SimulationDiverged, UserError
 from ..progress import Progress, silent
 from . import significance as sig
 from .batching import BatchGate
-from .contact_fit import fit_base_contact
-from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
+from .contact_fit import fit_base_contact
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
                   grid_search, levenberg_marquardt, uncertainty)
+from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution
 
 REPORT_FORMAT = "unipixie.diagnosis/1"
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
@@ -673,7 +673,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
              predictive_window: bool = True, parallel: Optional[bool] = None,
-             resolution_budget_s: float = DEFAULT_BUDGET_S, progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
+             resolution_budget_s: float = DEFAULT_BUDGET_S, progress: Optional[Progress] = None,
+             log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
     effects_on: effects already on in the current model (effect objects or ``"name:k=v"`` specs);

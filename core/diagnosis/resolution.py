@@ -32,9 +32,10 @@ import numpy as np
 
 from .compare import noise_rmse
 
-DEFAULT_BUDGET_S = 90.0
+DEFAULT_BUDGET_S = 60.0
 """Seconds of simulation the rest of a diagnosis may take with the finer model before the floor is used instead
-(a full diagnosis should stay within about two minutes on a 2-core CPU)."""
+(a full diagnosis should stay within about two minutes on a 2-core CPU: 60 s with the finer model plus the
+coarse work already done)."""
 REFINE = {"anchors": 2.0, "cells_across": 1.5, "cells_across_thinnest": 1.5, "cubature_points": 2.0,
           "collision_points": 2.0, "mass_samples": 2.0}
 """Factor applied to each resolution setting a solver exposes (integer settings rounded)."""
