@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -60,18 +61,31 @@ def test_finer_settings_refine_space_and_time(settings, refined):
     assert resolution.finer_settings(SimpleNamespace(settings=None)) is None
 
 
-def test_floor_refuses_effects_whose_gain_is_below_it():
-    check = resolution.ResolutionCheck(checked=True, floor=0.002, enforce_floor=True)
+def test_floor_refuses_effects_that_only_imitate_the_discretisation_error():
+    """An effect whose change of the trajectory lies along the discretisation error must gain more than it could by
+    imitating that error; one whose change is unrelated to it is judged by the noise tests alone."""
+    rng = np.random.default_rng(0)
     n = 1000
-    ref_sse = n * 0.005 ** 2
-    small = SimpleNamespace(name="small", sse=ref_sse - 0.5 * n * 0.002 ** 2, significant=True, reasons=[])
-    large = SimpleNamespace(name="large", sse=ref_sse - 3.0 * n * 0.002 ** 2, significant=True, reasons=[])
-    resolution.apply_floor(check, [small, large], ref_sse, n)
-    assert not small.significant and "discretisation floor" in small.reasons[0]
-    assert large.significant and not large.reasons
-    off = resolution.ResolutionCheck(checked=True, floor=0.002, enforce_floor=False)  # converged: no floor
-    again = SimpleNamespace(name="small", sse=small.sse, significant=True, reasons=[])
-    resolution.apply_floor(off, [again], ref_sse, n)
+    delta = 0.002 * rng.normal(size=3 * n)  # finer − coarse, floor ≈ 2 mm · √3
+    other = rng.normal(size=3 * n)
+    other -= (other @ delta) / (delta @ delta) * delta  # orthogonal to the discretisation error
+    other *= 0.001 / np.sqrt(np.mean(other ** 2))
+    r_ref = 0.6 * delta + 0.3 * other  # the reference leaves some of each
+    check = resolution.ResolutionCheck(checked=True, floor=float(np.sqrt(np.mean(delta ** 2) * 3)),
+                                       enforce_floor=True, difference=delta)
+
+    def candidate(change):
+        r = r_ref - change
+        return SimpleNamespace(residual=r, sse=float(r @ r), significant=True, reasons=[])
+
+    imitator = candidate(0.6 * delta)  # removes exactly the discretisation-like part
+    unrelated = candidate(0.3 * other)  # removes the part refinement does not explain
+    resolution.apply_floor(check, [imitator, unrelated], r_ref, n)
+    assert not imitator.significant and "discretisation" in imitator.reasons[0]
+    assert unrelated.significant and not unrelated.reasons
+    off = dataclasses.replace(check, enforce_floor=False)  # resolved or refined: no floor
+    again = candidate(0.6 * delta)
+    resolution.apply_floor(off, [again], r_ref, n)
     assert again.significant
 
 

@@ -864,7 +864,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             if c.fit is not None:
                 unc = uncertainty(c.fit, c.free_params, s2)
                 c.uncertainty = {p.label: _f(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
-        apply_floor(resolution, cands, ref.sse, P.n_obs)  # below the discretisation floor: not significant
+        apply_floor(resolution, cands, ref.residual, P.n_obs)  # imitating the discretisation error: not significant
         cands.sort(key=lambda c: -c.score)
         # held-out window and time-step checks on the leading candidates -------------------------------
         leading = [c for c in cands if c.significant][:3]

@@ -12,9 +12,12 @@ collision points and mass samples, and half the time step) and the two trajector
   cost × the simulations the diagnosis still needs, :data:`DEFAULT_BUDGET_S`): the diagnosis uses the finer
   model from here on;
 * they differ by more and the finer model is too costly: the coarse model's **discretisation floor** (the RMSE
-  between the two resolutions) is recorded, and no effect is called significant whose improvement is below it
-  (its gain in squared error must exceed n·floor² over the n observed samples: what the discretisation alone
-  can move) — :func:`apply_floor`.
+  between the two resolutions) is recorded, and no effect is called significant whose improvement is below the
+  part of that floor it could be imitating (:func:`apply_floor`): with δ the change refinement makes (finer −
+  coarse positions at the observed samples) and v the change the effect makes to the model's trajectory, an
+  effect gains (ΔSSE) at most (δ·v/|v|)² from merely standing in for the discretisation; it must gain more.
+  The whole floor n·floor² would refuse every effect whose signature has nothing in common with the
+  discretisation error (measured: a stiffer half of a clamped bar, 64 spring-mass anchors, floor 10.9 mm).
 
 The floor is an estimate from one refinement step (the finer model's own error is not known); it is reported
 as such in ``diagnosis.json`` (``resolution``), the summary and the HTML page.
@@ -86,9 +89,25 @@ class ResolutionCheck:
     finer: Optional[dict] = None
     verdict: str = "not checked"
 
+    difference: Optional[np.ndarray] = None
+    """(3·n,) m: finer − coarse positions at the observed samples of the fits (residual order); not reported."""
+
     def floor_sse(self, n_obs: int) -> float:
-        """Squared error (m²) the discretisation alone can move over ``n_obs`` observed samples."""
+        """Squared error (m²) the discretisation alone moves over ``n_obs`` observed samples (0 when not enforced)."""
         return n_obs * self.floor ** 2 if self.enforce_floor else 0.0
+
+    def imitable_sse(self, change: np.ndarray) -> float:
+        """Squared error (m²) an effect that changes the trajectory by ``change`` (3·n,) m could gain by standing
+        in for the discretisation error alone: (δ·v/|v|)² (0 when the floor is not enforced)."""
+        if not self.enforce_floor or self.difference is None:
+            return 0.0
+        v = np.asarray(change, dtype=np.float64).reshape(-1)
+        if v.shape != self.difference.shape:
+            return self.floor_sse(len(v) // 3)
+        norm = float(np.linalg.norm(v))
+        if norm <= 0.0:
+            return 0.0
+        return float(self.difference @ v / norm) ** 2
 
     def to_dict(self) -> dict:
         return {"checked": self.checked, "floor_rmse": _f(self.floor), "noise_level": _f(self.noise_level),
@@ -136,10 +155,12 @@ def check_resolution(P, model_effects: list, prepare, sigma: float, remaining_ru
     obs = P.obs_all
     d = coarse[obs] - fine[obs]
     floor = float(np.sqrt(np.mean(np.sum(d * d, axis=-1)))) if np.all(np.isfinite(d)) else math.inf
+    diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
     level = noise_rmse(sigma)
     check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
                             predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
-                            settings=_plain(P.sim.settings), finer=_plain(fine_settings))
+                            settings=_plain(P.sim.settings), finer=_plain(fine_settings),
+                            difference=diff if np.all(np.isfinite(diff)) else None)
     use = None
     if floor <= level:
         check.verdict = (f"the fitted base model moves by {1e3 * floor:.2f} mm when refined (finer solid and half "
@@ -155,21 +176,29 @@ def check_resolution(P, model_effects: list, prepare, sigma: float, remaining_ru
         check.verdict = (f"refined, the fitted base model moves by {1e3 * floor:.2f} mm, more than the noise level "
                          f"{1e3 * level:.2f} mm, and the finer model would cost about {check.predicted_seconds:.0f} s "
                          f"(budget {budget_s:.0f} s): the model's discretisation floor is {1e3 * floor:.2f} mm and no "
-                         "effect whose improvement is below it is called significant")
+                         "effect whose improvement is below the part of it the effect could imitate is called "
+                         "significant")
     if say is not None:
         say("   resolution: " + check.verdict)
     return check, use
 
 
-def apply_floor(check: ResolutionCheck, candidates: list, sse_reference: float, n_obs: int) -> None:
+def apply_floor(check: ResolutionCheck, candidates: list, residual_reference: np.ndarray, n_obs: int) -> None:
     """Refuse significance (in place: ``significant`` False, a reason appended) to candidates whose gain in squared
-    error over the reference is below what the discretisation alone can move (``check.floor_sse``)."""
-    need = check.floor_sse(n_obs)
-    if need <= 0.0:
+    error over the reference is no more than they could gain by imitating the discretisation error
+    (:meth:`ResolutionCheck.imitable_sse`).  residual_reference: the reference's data residual (3·n_obs,) m; each
+    candidate's ``residual`` and ``sse`` are its own."""
+    if not check.enforce_floor:
         return
+    r_ref = np.asarray(residual_reference, dtype=np.float64).reshape(-1)
+    sse_reference = float(r_ref @ r_ref)
     for c in candidates:
+        if c.residual is None:
+            continue
         gain = sse_reference - c.sse
-        if gain < need:
-            c.reasons.append(f"its improvement ({1e3 * math.sqrt(max(gain, 0.0) / n_obs):.2f} mm RMS) is below the "
-                             f"model's discretisation floor {1e3 * check.floor:.2f} mm")
+        need = check.imitable_sse(r_ref - np.asarray(c.residual, dtype=np.float64).reshape(-1))
+        if gain <= need:
+            c.reasons.append(f"its improvement ({1e3 * math.sqrt(max(gain, 0.0) / n_obs):.2f} mm RMS) is no more "
+                             f"than it gains by imitating the discretisation error ({1e3 * math.sqrt(need / n_obs):.2f}"
+                             f" mm RMS of the model's discretisation floor {1e3 * check.floor:.2f} mm)")
             c.significant = False
