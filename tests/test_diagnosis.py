@@ -13,6 +13,11 @@ Young's modulus 20 % above the one the file states — the base model is close b
 identical to the truth — because the spring-mass and MPM solvers disagree by more than 2× the
 noise on deforming bodies at the resolutions a CPU test can afford (measured: 10–20 mm on a
 clamped bar), which would make the "within 2× noise" criterion a test of the solvers.
+
+Contact damping is not a candidate effect where the solid touches the ground: the diagnosis fits the ground's
+(c, k) with E/ρ as part of the base model (core/diagnosis/contact_fit.py).  Its case therefore reads: the base
+contact is adopted with c and k within 25 % of the truth, nothing else is identified, and the final error is
+within 2× the noise level.
 """
 
 from __future__ import annotations
@@ -75,6 +80,17 @@ def test_hidden_effect_is_found(spec, tmp_path):
     truth = fx.parse(spec)
     m = synth.synthesize([truth], gen, settings=gen_settings, **{**COMMON, **kw})
     d = diagnose.diagnose(m, "spring_mass", settings=(diag_settings or [DIAG])[0], max_additions=1)
+    if truth.name == "contact_damping":
+        # the ground contact is part of the base model (core/diagnosis/contact_fit.py): its (c, k) are fitted with
+        # E/ρ before any effect is judged, contact_damping is no candidate, and then nothing else is missing
+        bc = d.base_contact
+        assert bc["touches_ground"] and bc["adopted"], d.summary()
+        assert _relative_error(fx.make("contact_damping", **bc["params"]), truth) <= 0.25, bc
+        assert "contact_damping" not in [c.name for c in d.candidates]
+        assert d.identified is None and not any(c.significant for c in d.candidates), d.summary()
+        assert d.final.rmse <= 2.0 * NOISE_LEVEL, d.summary()
+        assert d.final.rmse < 0.5 * d.history[0]["rmse"]
+        return
     top = d.candidates[0]
     assert top.name == truth.name and top.significant, d.summary()
     assert d.identified == truth.name

@@ -177,7 +177,7 @@ def _show(args) -> int:
     print(f"  material: {json.dumps(mat)}")
     print(f"  scenario: {json.dumps(m.scenario.to_dict())}")
     if m.frame_count >= 4:
-        s = estimate_noise(m.positions)
+        s = estimate_noise(m.positions, m.rest)
         print(f"  noise estimated from the tracks: σ = {1e3 * s:.3g} mm per coordinate "
               f"(noise floor RMSE {1e3 * noise_rmse(s):.3g} mm)")
     for w in m.warnings:

@@ -61,8 +61,10 @@ from . import significance as sig
 from . import verdict as verdict_mod
 from .batching import BatchGate
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
+from .contact_fit import fit_base_contact
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
                   grid_search, levenberg_marquardt, uncertainty)
+from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution
 
 REPORT_FORMAT = "unipixie.diagnosis/1"
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
@@ -217,6 +219,10 @@ class Diagnosis:
     horizon: Optional[float] = None
     verdict: dict = field(default_factory=dict)
     """:func:`.verdict.for_diagnosis`: code, explained, sentence (set when the diagnosis ends)."""
+    base_contact: dict = field(default_factory=dict)
+    """The ground contact fitted as part of the base (:meth:`.contact_fit.ContactFit.to_dict`)."""
+    resolution: dict = field(default_factory=dict)
+    """The base model's resolution check (:meth:`.resolution.ResolutionCheck.to_dict`)."""
 
     @property
     def candidates(self) -> list:
@@ -268,6 +274,8 @@ class Diagnosis:
                                      "the reference model's above-noise squared error removed ≥ min_share AND the "
                                      "fit on the early frames does not predict the held-out later frames worse"},
             "contact_times": self.contact_times,
+            "base_contact": self.base_contact,
+            "resolution": self.resolution,
             "predictive_until": _f(self.horizon),
             "wall_s": _f(self.wall_s),
             "simulations": int(self.simulations),
@@ -286,6 +294,13 @@ class Diagnosis:
         lines.append(f"verdict: {(self.verdict or verdict_mod.for_diagnosis(self))['sentence']}")
         lines.append("history: " + " → ".join(f"{'+'.join(h['effects']) or 'base'} {1e3 * h['rmse']:.2f} mm"
                                                for h in self.history))
+        bc = self.base_contact
+        if bc.get("touches_ground"):
+            p = bc["params"]
+            lines.append(f"base contact (fitted with E/ρ): c = {p['c']:.3g} Pa·s/m, k = {p['k']:.3g} Pa/m, "
+                         + ("part of the base" if bc["adopted"] else "not needed (rigid, lossless floor kept)"))
+        if self.resolution.get("checked"):
+            lines.append("resolution: " + self.resolution["verdict"])
         bm = self.base_material
         if bm.get("looks_wrong"):
             lines.append(f"base material looks wrong: E/ρ × {bm['E_scale']:.3g} fits better ({bm['note']})")
@@ -349,6 +364,7 @@ class _Problem:
         self.gate = BatchGate(self._run_now)
         self.sim = sim
         self.fixed = list(fixed)
+        self.base_effects: list = []  # part of every model run: the base's fitted ground contact (contact_fit.py)
         self.progress = progress
         self.max_batch = max(1, int(max_batch))
         self.measured = np.asarray(measurement.positions, dtype=np.float64)
@@ -389,7 +405,7 @@ class _Problem:
 
     # effects for one model ---------------------------------------------------------------
     def model_effects(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> list:
-        out = list(self.fixed if fixed is None else fixed) + list(effects)
+        out = list(self.base_effects) + list(self.fixed if fixed is None else fixed) + list(effects)
         if abs(scale - 1.0) > 1e-12:
             out.append(fx.make("stiffness_region", factor=float(scale), region={"box": self.everything_box}))
         return out
@@ -663,7 +679,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
              predictive_window: bool = True, parallel: Optional[bool] = None, allow_long: bool = False,
-             progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
+             resolution_budget_s: float = DEFAULT_BUDGET_S, progress: Optional[Progress] = None,
+             log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
     effects_on: effects already on in the current model (effect objects or ``"name:k=v"`` specs);
@@ -678,8 +695,10 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     costs about what one does there), off on the CPU (where a batch costs the sum of its environments).
     With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
     round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
-    differently.  out_dir: write
-    ``diagnosis.json``, the pictures and ``diagnosis.html`` there (checked for writing before any simulation).
+    differently.  resolution_budget_s: seconds of simulation the rest of the diagnosis may spend with a finer
+    model when the fitted base model is not resolved (:mod:`.resolution`; 0: never switch, enforce the floor).
+    out_dir: write ``diagnosis.json``, the pictures and ``diagnosis.html`` there (checked for writing before
+    any simulation).
     allow_long: accept measurements whose times look like milliseconds and diagnoses past the long-job
     limit (:mod:`.sanity` refuses them otherwise, as it refuses scenarios that contradict the measurement).
     Returns a :class:`Diagnosis`.
@@ -707,7 +726,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         from .report import check_out_dir
 
         check_out_dir(out_dir)
-    sigma = estimate_noise(measurement.positions)
+    sigma = estimate_noise(measurement.positions, measurement.rest)
     if settings is None:
         settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
     say(f"measurement: {measurement.summary()}")
@@ -769,6 +788,25 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                             "window, errors are reported over all samples")
             say(f"   the model is predictive up to t = {horizon:.3g} s only (chaotic later): fitting and testing "
                 "on that window")
+
+    # ---- 2b. is the fitted base model resolved? (resolution.py) ---------------------------------------
+    progress.set_status("re-running the fitted base model finer (resolution check)")
+    resolution, finer_sim = check_resolution(
+        P, P.model_effects(ref.scale, ref.effects, ref.fixed),
+        lambda s: api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
+                              device=device, settings=s, progress=None),
+        sigma, int(progress.total) - P.evaluations, budget_s=resolution_budget_s, say=say)
+    if finer_sim is not None:  # from here on the finer model, its E/ρ refitted
+        P.sim, settings = finer_sim, finer_sim.settings
+        bf, full_residual = _fit_base(P, base_fit_param, lm_iterations, progress, start=np.array([math.log(ref.scale)]))
+        ref = _Reference(float(math.exp(bf.u[0])), [], P.sse(full_residual), full_residual[:P.size],
+                         list(effects_on), e_width)
+
+    # ---- 2c. ground contact, part of the base (contact_fit.py) --------------------------------------
+    contact = fit_base_contact(P, measurement, material, ref.scale, e_width, ref.sse, names, lm_iterations, progress,
+                               say)
+    if contact.adopted:
+        ref = _Reference(contact.E_scale, [], contact.sse, contact.residual, list(effects_on), e_width)
 
     # ---- 3.-6. rounds ---------------------------------------------------------------------------
     rounds: list[Round] = []
@@ -839,6 +877,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             if c.fit is not None:
                 unc = uncertainty(c.fit, c.free_params, s2)
                 c.uncertainty = {p.label: _f(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
+        apply_floor(resolution, cands, ref.residual, P.n_obs)  # imitating the discretisation error: not significant
         cands.sort(key=lambda c: -c.score)
         # held-out window and time-step checks on the leading candidates -------------------------------
         leading = [c for c in cands if c.significant][:3]
@@ -935,8 +974,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     final = compare(final_pos, measurement.positions, measurement.times, measurement.rest,
                     regions={r.name: r.indices for r in baseline.regions})
     identified = rounds[0].identified if rounds else None
-    contact = _contact_times(final_pos, measurement.times, measurement.scenario.ground_height, sc.size)
-    settings_used = _settings_dict(sim)
+    contact_at = _contact_times(final_pos, measurement.times, measurement.scenario.ground_height, sc.size)
+    settings_used = _settings_dict(P.sim)
     result = Diagnosis(solver=solver, measurement_source=str(measurement.source), times=measurement.times,
                        rest_positions=np.asarray(measurement.rest), measured=measurement.positions,
                        noise_sigma=sigma, baseline=baseline, baseline_positions=base_pos, final=final,
@@ -944,7 +983,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                        history_positions=history_positions, base_material=base_material, effects_on=effects_on,
                        added=added, E_scale=ref.scale, identified=identified, wall_s=0.0,
                        simulations=P.evaluations, ground_height=measurement.scenario.ground_height,
-                       warnings=warnings, contact_times=contact, settings=settings_used, horizon=horizon)
+                       warnings=warnings, contact_times=contact_at, settings=settings_used, horizon=horizon,
+                       base_contact=contact.to_dict(P.n_obs), resolution=resolution.to_dict())
     result.verdict = verdict_mod.for_diagnosis(result)
     result.wall_s = time.perf_counter() - t_start
     say(f"verdict: {result.verdict['sentence']}")

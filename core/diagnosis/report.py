@@ -363,6 +363,7 @@ def render_html(d, doc: dict) -> str:
               f"stated E, {_fmt(bm.get('rmse_fitted_E'), 'mm', 1e3)} with the fitted one. "
               + ("<b>The base material looks wrong.</b> " if bm.get("looks_wrong") else
                  "The stated base material is consistent with the data. ") + e(bm.get("note", "")))
+    bm_txt += _base_extras_html(d)
     na_txt = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in na.items())
     warn = "".join(f"<li>{e(w)}</li>" for w in d.warnings)
     return f"""<!DOCTYPE html>
@@ -460,3 +461,22 @@ def load_report(path) -> dict:
         raise UserError(f"{p}: a diagnosis report is a JSON object")
     validate_report(doc)
     return doc
+
+
+def _base_extras_html(d) -> str:
+    """The base model's fitted ground contact and discretisation check (contact_fit.py, resolution.py), as HTML
+    sentences for the base-material paragraph."""
+    from html import escape as e
+
+    out = ""
+    bc = getattr(d, "base_contact", None) or {}
+    if bc.get("touches_ground"):
+        p = bc["params"]
+        out += (f" <br>Ground contact fitted with E/ρ (part of the base, not a candidate effect): "
+                f"c = {_fmt(p.get('c'), 'Pa·s/m')}, k = {_fmt(p.get('k'), 'Pa/m')}, E/ρ × {_fmt(bc.get('E_scale'))}; "
+                f"RMSE {_fmt(bc.get('rmse'), 'mm', 1e3)} against {_fmt(bc.get('rmse_rigid_floor'), 'mm', 1e3)} with "
+                f"the rigid, lossless floor. {e(bc.get('reason', ''))}")
+    res = getattr(d, "resolution", None) or {}
+    if res.get("checked"):
+        out += f" <br>Resolution check: {e(res.get('verdict', ''))}"
+    return out

@@ -1,0 +1,204 @@
+"""The diagnosis checks its own resolution: is the fitted base model converged at the resolution it runs?
+
+A diagnosis runs its solver coarser than a bake (hundreds of simulations).  A discretisation error larger than
+the noise looks like a missing effect (issue 18: a spring-mass drop moved 73 mm at 192 anchors and 26 mm at
+2048 from a converged FEM).  Before effects are judged the fitted base model is therefore re-run finer
+(:func:`finer_settings`: about twice the spring-mass anchors, 1.5× the MPM cells across, twice the LBS cubature,
+collision points and mass samples, and half the time step) and the two trajectories are compared:
+
+* they differ by no more than the noise (RMSE of 3-D distances ≤ the noise level √3 σ): the resolution is
+  sufficient, nothing changes;
+* they differ by more, and a diagnosis with the finer model fits the time budget (the finer run's measured
+  cost × the simulations the diagnosis still needs, :data:`DEFAULT_BUDGET_S`): the diagnosis uses the finer
+  model from here on;
+* they differ by more and the finer model is too costly: the coarse model's **discretisation floor** (the RMSE
+  between the two resolutions) is recorded, and no effect is called significant whose improvement is below the
+  part of that floor it could be imitating (:func:`apply_floor`): with δ the change refinement makes (finer −
+  coarse positions at the observed samples) and v the change the effect makes to the model's trajectory, an
+  effect gains (ΔSSE) at most (δ·v/|v|)² from merely standing in for the discretisation; it must gain more.
+  The whole floor n·floor² would refuse every effect whose signature has nothing in common with the
+  discretisation error (measured: a stiffer half of a clamped bar, 64 spring-mass anchors, floor 10.9 mm).
+
+The floor is an estimate from one refinement step (the finer model's own error is not known); it is reported
+as such in ``diagnosis.json`` (``resolution``), the summary and the HTML page.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .compare import noise_rmse
+
+DEFAULT_BUDGET_S = 60.0
+"""Seconds of simulation the rest of a diagnosis may take with the finer model before the floor is used instead
+(a full diagnosis should stay within about two minutes on a 2-core CPU: 60 s with the finer model plus the
+coarse work already done)."""
+REFINE = {"anchors": 2.0, "cells_across": 1.5, "cells_across_thinnest": 1.5, "cubature_points": 2.0,
+          "collision_points": 2.0, "mass_samples": 2.0}
+"""Factor applied to each resolution setting a solver exposes (integer settings rounded)."""
+
+
+def finer_settings(sim) -> Optional[object]:
+    """The settings of the prepared simulation ``sim`` refined in space (:data:`REFINE`) and time (half step), or
+    ``None`` when the solver exposes neither."""
+    from .diagnose import half_step_settings
+
+    s = getattr(sim, "settings", None)
+    if s is None or not dataclasses.is_dataclass(s):
+        return None
+    names = {f.name for f in dataclasses.fields(s)}
+    changes = {}
+    for key, factor in REFINE.items():
+        if key in names and isinstance(getattr(s, key), (int, float)) and getattr(s, key):
+            v = getattr(s, key) * factor
+            changes[key] = int(round(v)) if isinstance(getattr(s, key), int) else v
+    spatial = dataclasses.replace(s, **changes) if changes else s
+
+    class _Shim:  # half_step_settings reads ``.settings`` only
+        settings = spatial
+
+    fine = half_step_settings(_Shim, spatial)
+    if fine is None and not changes:
+        return None
+    return fine if fine is not None else spatial
+
+
+@dataclass
+class ResolutionCheck:
+    """Outcome of the check.  floor: RMSE (m, 3-D distances over observed samples) between the fitted base model
+    at the diagnosis's resolution and the finer one; noise_level: √3 σ (m); used_finer: the diagnosis continues
+    with the finer model; enforce_floor: effects must beat the floor; seconds / finer_seconds: one run at each
+    resolution (s); settings / finer_settings: the two solvers' settings (dicts)."""
+
+    checked: bool = False
+    floor: float = 0.0
+    noise_level: float = 0.0
+    used_finer: bool = False
+    enforce_floor: bool = False
+    seconds: float = 0.0
+    finer_seconds: float = 0.0
+    predicted_seconds: float = 0.0
+    budget_s: float = DEFAULT_BUDGET_S
+    settings: Optional[dict] = None
+    finer: Optional[dict] = None
+    verdict: str = "not checked"
+
+    difference: Optional[np.ndarray] = None
+    """(3·n,) m: finer − coarse positions at the observed samples of the fits (residual order); not reported."""
+
+    def floor_sse(self, n_obs: int) -> float:
+        """Squared error (m²) the discretisation alone moves over ``n_obs`` observed samples (0 when not enforced)."""
+        return n_obs * self.floor ** 2 if self.enforce_floor else 0.0
+
+    def imitable_sse(self, change: np.ndarray) -> float:
+        """Squared error (m²) an effect that changes the trajectory by ``change`` (3·n,) m could gain by standing
+        in for the discretisation error alone: (δ·v/|v|)² (0 when the floor is not enforced)."""
+        if not self.enforce_floor or self.difference is None:
+            return 0.0
+        v = np.asarray(change, dtype=np.float64).reshape(-1)
+        if v.shape != self.difference.shape:
+            return self.floor_sse(len(v) // 3)
+        norm = float(np.linalg.norm(v))
+        if norm <= 0.0:
+            return 0.0
+        return float(self.difference @ v / norm) ** 2
+
+    def to_dict(self) -> dict:
+        return {"checked": self.checked, "floor_rmse": _f(self.floor), "noise_level": _f(self.noise_level),
+                "used_finer": self.used_finer, "enforce_floor": self.enforce_floor, "seconds_per_run": _f(self.seconds),
+                "finer_seconds_per_run": _f(self.finer_seconds), "predicted_seconds_finer": _f(self.predicted_seconds),
+                "budget_s": _f(self.budget_s), "settings": self.settings, "finer_settings": self.finer,
+                "verdict": self.verdict}
+
+
+def _f(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _plain(s) -> dict:
+    out = {}
+    for f in dataclasses.fields(s):
+        v = getattr(s, f.name)
+        if isinstance(v, (int, float, str, bool)) or v is None:
+            out[f.name] = v
+    return out
+
+
+def check_resolution(P, model_effects: list, prepare, sigma: float, remaining_runs: int,
+                     budget_s: float = DEFAULT_BUDGET_S, say=None) -> tuple[ResolutionCheck, Optional[object]]:
+    """Re-run the fitted base model finer and decide (module docstring).
+
+    P: the diagnosis problem (its ``_Problem``: ``sim``, ``run``, observed mask, measured positions);
+    model_effects: the fitted base model's effect list (``P.model_effects(...)``); prepare: settings → a prepared
+    simulation of the same scene; sigma: noise σ (m); remaining_runs: simulations the diagnosis still expects.
+    Returns (check, the finer simulation when the diagnosis should use it, else ``None``).
+    """
+    fine_settings = finer_settings(P.sim)
+    if fine_settings is None:
+        return ResolutionCheck(verdict="the solver exposes no resolution or time-step setting: not checked"), None
+    t0 = time.perf_counter()
+    coarse = P.run([model_effects])[0]
+    t_coarse = time.perf_counter() - t0
+    fine_sim = prepare(fine_settings)
+    t0 = time.perf_counter()
+    fine = P.run([model_effects], sim=fine_sim)[0]
+    t_fine = time.perf_counter() - t0
+    obs = P.obs_all
+    d = coarse[obs] - fine[obs]
+    floor = float(np.sqrt(np.mean(np.sum(d * d, axis=-1)))) if np.all(np.isfinite(d)) else math.inf
+    diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
+    level = noise_rmse(sigma)
+    check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
+                            predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
+                            settings=_plain(P.sim.settings), finer=_plain(fine_settings),
+                            difference=diff if np.all(np.isfinite(diff)) else None)
+    use = None
+    if floor <= level:
+        check.verdict = (f"the fitted base model moves by {1e3 * floor:.2f} mm when refined (finer solid and half "
+                         f"the time step), within the noise level {1e3 * level:.2f} mm: its resolution is sufficient")
+    elif check.predicted_seconds <= budget_s:
+        check.used_finer = True
+        use = fine_sim
+        check.verdict = (f"refined, the fitted base model moves by {1e3 * floor:.2f} mm, more than the noise level "
+                         f"{1e3 * level:.2f} mm: the diagnosis uses the finer model (predicted "
+                         f"{check.predicted_seconds:.0f} s of simulation, budget {budget_s:.0f} s)")
+    else:
+        check.enforce_floor = True
+        check.verdict = (f"refined, the fitted base model moves by {1e3 * floor:.2f} mm, more than the noise level "
+                         f"{1e3 * level:.2f} mm, and the finer model would cost about {check.predicted_seconds:.0f} s "
+                         f"(budget {budget_s:.0f} s): the model's discretisation floor is {1e3 * floor:.2f} mm and no "
+                         "effect whose improvement is below the part of it the effect could imitate is called "
+                         "significant")
+    if say is not None:
+        say("   resolution: " + check.verdict)
+    return check, use
+
+
+def apply_floor(check: ResolutionCheck, candidates: list, residual_reference: np.ndarray, n_obs: int) -> None:
+    """Refuse significance (in place: ``significant`` False, a reason appended) to candidates whose gain in squared
+    error over the reference is no more than they could gain by imitating the discretisation error
+    (:meth:`ResolutionCheck.imitable_sse`).  residual_reference: the reference's data residual (3·n_obs,) m; each
+    candidate's ``residual`` and ``sse`` are its own."""
+    if not check.enforce_floor:
+        return
+    r_ref = np.asarray(residual_reference, dtype=np.float64).reshape(-1)
+    sse_reference = float(r_ref @ r_ref)
+    for c in candidates:
+        if c.residual is None:
+            continue
+        gain = sse_reference - c.sse
+        need = check.imitable_sse(r_ref - np.asarray(c.residual, dtype=np.float64).reshape(-1))
+        if gain <= need:
+            c.reasons.append(f"its improvement ({1e3 * math.sqrt(max(gain, 0.0) / n_obs):.2f} mm RMS) is no more "
+                             f"than it gains by imitating the discretisation error ({1e3 * math.sqrt(need / n_obs):.2f}"
+                             f" mm RMS of the model's discretisation floor {1e3 * check.floor:.2f} mm)")
+            c.significant = False

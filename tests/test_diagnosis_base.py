@@ -1,0 +1,116 @@
+"""The base model of a diagnosis: ground contact fitted with E/ρ (contact_fit.py) and the resolution check
+(resolution.py).  Fast unit tests, plus one small end-to-end diagnosis of a drop onto a damped floor."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from unipixie.core.diagnosis import contact_fit, resolution
+from unipixie.solvers.lbs import LBSSettings
+from unipixie.solvers.mpm import MPMSettings
+from unipixie.solvers.spring_mass import SpringMassSettings
+
+
+def _measurement(lowest: float, ground=0.0):
+    rest = np.random.default_rng(0).uniform(0, 0.2, (50, 3))
+    pos = np.repeat(rest[None], 5, axis=0)
+    pos[..., 2] += lowest - rest[:, 2].min()
+    return SimpleNamespace(rest=rest, positions=pos, scenario=SimpleNamespace(ground_height=ground))
+
+
+def test_touches_ground_only_near_the_ground():
+    assert contact_fit.touches_ground(_measurement(0.001), 0.001)
+    assert not contact_fit.touches_ground(_measurement(0.05), 0.001)
+    assert not contact_fit.touches_ground(_measurement(0.0, ground=None), 0.001)
+
+
+def test_without_contact_nothing_is_fitted_and_the_candidates_stay():
+    names = ["linear_drag", "contact_damping"]
+    P = SimpleNamespace(sigma=0.001)  # no attribute a fit would need: it must not be touched
+    cf = contact_fit.fit_base_contact(P, _measurement(0.05), None, 1.0, 1.0, 1.0, names, 6, None)
+    assert cf.effect is None and not cf.adopted and names == ["linear_drag", "contact_damping"]
+    assert not hasattr(P, "base_effects")
+    assert cf.to_dict(10) == {"touches_ground": False, "adopted": False, "reason": cf.reason}
+
+
+def test_contact_scales():
+    k, c = contact_fit.contact_scales(2e5, 1000.0, 0.2)
+    assert k == pytest.approx(math.pi ** 2 * 2e5 / 0.2)
+    assert c == pytest.approx(2 * math.sqrt(k * 1000.0 * 0.2))
+
+
+@pytest.mark.parametrize("settings, refined", [
+    (SpringMassSettings(anchors=96), {"anchors": 192, "safety": 0.35}),
+    (MPMSettings(cells_across=12, viscous_cfl=0.2), {"cells_across": 18, "cells_across_thinnest": 6}),
+    (LBSSettings(), {}),
+])
+def test_finer_settings_refine_space_and_time(settings, refined):
+    fine = resolution.finer_settings(SimpleNamespace(settings=settings))
+    for key, value in refined.items():
+        assert getattr(fine, key) == pytest.approx(value)
+    if isinstance(settings, MPMSettings):
+        assert fine.cfl == pytest.approx(0.5 * settings.cfl) and fine.viscous_cfl == pytest.approx(0.1)
+    if isinstance(settings, LBSSettings):
+        assert fine.cubature_points == 2 * settings.cubature_points
+        assert fine.max_dt == pytest.approx(0.5 * settings.max_dt)
+    assert resolution.finer_settings(SimpleNamespace(settings=None)) is None
+
+
+def test_floor_refuses_effects_that_only_imitate_the_discretisation_error():
+    """An effect whose change of the trajectory lies along the discretisation error must gain more than it could by
+    imitating that error; one whose change is unrelated to it is judged by the noise tests alone."""
+    rng = np.random.default_rng(0)
+    n = 1000
+    delta = 0.002 * rng.normal(size=3 * n)  # finer − coarse, floor ≈ 2 mm · √3
+    other = rng.normal(size=3 * n)
+    other -= (other @ delta) / (delta @ delta) * delta  # orthogonal to the discretisation error
+    other *= 0.001 / np.sqrt(np.mean(other ** 2))
+    r_ref = 0.6 * delta + 0.3 * other  # the reference leaves some of each
+    check = resolution.ResolutionCheck(checked=True, floor=float(np.sqrt(np.mean(delta ** 2) * 3)),
+                                       enforce_floor=True, difference=delta)
+
+    def candidate(change):
+        r = r_ref - change
+        return SimpleNamespace(residual=r, sse=float(r @ r), significant=True, reasons=[])
+
+    imitator = candidate(0.6 * delta)  # removes exactly the discretisation-like part
+    unrelated = candidate(0.3 * other)  # removes the part refinement does not explain
+    resolution.apply_floor(check, [imitator, unrelated], r_ref, n)
+    assert not imitator.significant and "discretisation" in imitator.reasons[0]
+    assert unrelated.significant and not unrelated.reasons
+    off = dataclasses.replace(check, enforce_floor=False)  # resolved or refined: no floor
+    again = candidate(0.6 * delta)
+    resolution.apply_floor(off, [again], r_ref, n)
+    assert again.significant
+
+
+@pytest.mark.slow
+def test_drop_on_a_damped_floor_fits_the_contact_in_the_base(tmp_path):
+    """A cube dropped onto a damped, yielding floor (spring-mass made, 48 anchors): the base fit adopts the floor
+    with c within 25 % (k sits near this coarse network's rigid limit, where it is barely identifiable), nothing
+    is identified, the error ends at the noise, and the report carries the contact and the resolution check."""
+    import json
+
+    from unipixie.core.diagnosis import diagnose, synth
+
+    m = synth.synthesize(["contact_damping:c=3e4,k=1e6"], "spring_mass", settings={"anchors": 48}, shape="cube",
+                         scenario="drop", velocity=(0, 0, 0), height=0.1, noise=0.001, occlusion=0.1, points=80,
+                         duration=0.4, fps=40.0, seed=3)
+    d = diagnose.diagnose(m, "spring_mass", settings={"anchors": 48}, max_additions=1,
+                          candidates=["linear_drag", "contact_damping"], out_dir=tmp_path,
+                          resolution_budget_s=0.0)  # deterministic: never switch to the finer model
+    bc = d.base_contact
+    assert bc["touches_ground"] and bc["adopted"]
+    assert bc["params"]["c"] == pytest.approx(3e4, rel=0.25)
+    assert [c.name for c in d.candidates] == ["linear_drag"] and d.identified is None
+    assert d.final.rmse <= 2.0 * math.sqrt(3.0) * 0.001
+    doc = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert doc["base_contact"]["adopted"] and doc["resolution"]["checked"] and doc["resolution"]["floor_rmse"] > 0
+    assert doc["resolution"]["enforce_floor"] and not doc["resolution"]["used_finer"]
+    html = (tmp_path / "diagnosis.html").read_text()
+    assert "Ground contact fitted with E/ρ" in html and "Resolution check" in html
