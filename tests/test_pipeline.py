@@ -122,6 +122,41 @@ def test_states_done_stale_with_reasons_and_downstream(tmp_path, tiny_checkpoint
     assert core.first_pending(st) == "predict"
 
 
+def test_a_prediction_at_the_bakes_alpha_values_is_done_and_says_so(tmp_path, tiny_checkpoint):
+    """The command line and the demo predict at the α values they bake: done for the panel (with a note), and a
+    panel sweep is done for them; another seed still makes either stale."""
+    explicit = _settings(tiny_checkpoint, alphas=(1.0, 0.5, 0.5))
+    assert explicit.alphas == (0.5, 1.0) and list(explicit.resolved_alphas()) == [0.5, 1.0]
+    with pytest.raises(UserError, match="α values must be numbers in"):
+        _settings(tiny_checkpoint, alphas=(0.5, 1.5))
+    panel = _settings(tiny_checkpoint)
+    rec, _ = _done_record(tmp_path, explicit)
+    assert rec.get("predict")["inputs"]["alphas"] == [0.5, 1.0] and "count" not in rec.get("predict")["inputs"]
+    st = core.step_states(rec, core.CurrentInputs("fp1", panel))
+    assert st["predict"].state == core.DONE and st["predict"].reason.startswith("at α 0.5, 1 only")
+    swept, _ = _done_record(tmp_path, panel)
+    st = core.step_states(swept, core.CurrentInputs("fp1", explicit))
+    assert st["predict"].state == core.DONE and st["predict"].reason == ""
+    st = core.step_states(rec, core.CurrentInputs("fp1", _settings(tiny_checkpoint, seed=3)))
+    assert st["predict"].state == core.STALE and st["predict"].reason == "the seed changed"
+
+
+def test_prediction_at_chosen_alphas_is_one_pass_cached_and_matches_the_sweep(tiny_checkpoint, blob_grid):
+    s = _settings(tiny_checkpoint, alphas=(0.5,), heads=("mpm",))
+    one, path, inputs = _run(core.predict_job(blob_grid, s))
+    assert list(one.alphas) == [0.5] and inputs["alphas"] == [0.5] and path.is_file()
+    sweep, _, _ = _run(core.predict_job(blob_grid, _settings(tiny_checkpoint, heads=("mpm",))))   # 0, 0.5, 1
+    assert np.allclose(one.log10_E[0], sweep.log10_E[1], atol=1e-4)     # same noise: the same prediction at 0.5
+    job = core.predict_job(blob_grid, s)
+    statuses = []
+    try:
+        while True:
+            statuses.append(next(job)[1])
+    except StopIteration:
+        pass
+    assert statuses[-1] == "α 0.5 (mpm) from the cache"
+
+
 # --------------------------------------------------------------------------- checkpoint and preference checks
 def test_checkpoint_resolution_and_clear_messages(tmp_path, tiny_checkpoint, monkeypatch):
     assert core.resolve_checkpoint(tiny_checkpoint) == tiny_checkpoint
