@@ -101,6 +101,8 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
                  sheet_size=(480, 240))
 SOLVER_LABELS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "spring-mass"}
+BAKE_ORDER = ("mpm", "lbs", "spring_mass")
+"""The demo's bakes start in this order, the longest first (they run side by side on the CPU cores)."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -358,27 +360,32 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         workers = bake_workers(device, len(jobs))
         p = stages.sub("bake", f"baking {len(jobs)} objects ({plan.frames} frames at {plan.fps} fps"
                                + (f", {workers} at a time" if workers > 1 else "") + ")")
-        warm_up.join(say)
         planned = []
         for obj, solver, alpha in jobs:
             pio.sync_plan(obj, settings)
             planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, say)))
-        outcomes = run_side_by_side(
-            [(lambda o=obj, ss=sset: pio.bake_step(o, settings, solver_settings=ss), p.sub(1.0 / len(jobs), 1.0, obj.name))
-             for obj, _, _, sset in planned], max_running=workers)
+        planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first: MPM, LBS, spring-mass
         bakes, failed = [], []
-        for (obj, solver, alpha, solver_settings), rep in zip(planned, outcomes):
+
+        def bake_done(index, rep):
+            obj, solver, alpha, solver_settings = planned[index]
             if isinstance(rep, Exception):
                 if not isinstance(rep, UserError):
                     raise rep
                 failed.append({"object": obj.name, "solver": solver, "alpha": alpha, "error": str(rep)})
                 say(f"         {obj.name}: {solver} bake FAILED: {rep}")
-                continue
+                return
             moved = _max_displacement(obj, plan.frames)
             bakes.append(BakeSummary(obj.name, solver, alpha, rep.material, rep.mode, round(rep.simulate_seconds, 2),
                                      moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}))
             say(f"         {obj.name}: {rep.mode.replace('_', ' ')}, simulated in {rep.simulate_seconds:.1f} s, "
                 f"moved up to {100 * moved:.1f} cm")
+
+        run_side_by_side(
+            [(lambda o=obj, sv=solver, ss=sset: warm_up.ready(sv, pio.bake_step(o, settings, solver_settings=ss)),
+              p.sub(1.0 / len(jobs), 1.0, obj.name)) for obj, solver, _, sset in planned], max_running=workers,
+            on_done=bake_done)
+        say(f"         {warm_up.report()}")
         bpy_save(blend)
         stages.done()
 
@@ -432,17 +439,20 @@ def bake_workers(device: str, jobs: int) -> int:
 class KernelWarmUp:
     """Compile the solvers' Warp kernels in a worker thread while the demo builds, renders and predicts (an empty
     kernel cache costs about 40 s of compiling on a 2-core CPU, otherwise paid inside the first bake of each
-    solver).  It runs a two-frame simulation of a small sphere with each solver through the public solver API,
-    so exactly the kernels a bake launches get compiled; a failure here is ignored (the bake compiles then)."""
+    solver).  It runs a two-frame simulation of a small sphere with each solver through the public solver API, so
+    exactly the kernels a bake launches get compiled; :meth:`ready` holds a bake back until its solver's kernels
+    are done.  A failure here is ignored (the bake compiles then)."""
 
-    SOLVERS = ("mpm", "spring_mass", "lbs")
+    SOLVERS = ("mpm", "lbs", "spring_mass")
+    """In the order of the demo's bakes (:data:`BAKE_ORDER`)."""
 
     def __init__(self, device: str = "cpu"):
         import threading
 
         self.device = device
-        self.seconds = 0.0
+        self.seconds: dict = {}
         self.error = ""
+        self._done = {s: threading.Event() for s in self.SOLVERS}
         self._thread = threading.Thread(target=self._main, name="unipixie-warp-warm-up", daemon=True)
 
     def start(self) -> "KernelWarmUp":
@@ -450,7 +460,6 @@ class KernelWarmUp:
         return self
 
     def _main(self):
-        t0 = time.perf_counter()
         try:
             import trimesh
 
@@ -463,20 +472,28 @@ class KernelWarmUp:
             mesh.apply_translation([0.0, 0.0, 0.1])
             body = Body.from_mesh(mesh)
             for solver in self.SOLVERS:
+                t0 = time.perf_counter()
                 api.simulate(solver, body, HomogeneousMaterial(E=1e5, nu=0.3, density=1000.0, material="jelly"),
                              Scenario(ground_height=0.0), np.linspace(0.0, 1.0 / 24.0, 2), [], device=self.device)
+                self.seconds[solver] = time.perf_counter() - t0
+                self._done[solver].set()
         except Exception as exc:          # noqa: BLE001 - only a head start; the bakes compile what is missing
             self.error = f"{type(exc).__name__}: {exc}"
-        self.seconds = time.perf_counter() - t0
+        finally:
+            for event in self._done.values():
+                event.set()
 
-    def join(self, say=None) -> None:
-        waited = time.perf_counter()
-        self._thread.join()
-        if say is not None:
-            waited = time.perf_counter() - waited
-            say(f"         Warp kernels ready ({self.seconds:.0f} s of compiling in the background"
-                + (f", {waited:.0f} s waited for" if waited >= 1.0 else "") + ")"
-                + (f"; warm-up failed ({self.error}), the bakes compile" if self.error else ""))
+    def ready(self, solver: str, job):
+        """``job`` (a bake's job generator) once ``solver``'s kernels are compiled; yields while waiting."""
+        event = self._done.get(solver)
+        while event is not None and not event.wait(0.05):
+            yield 0.0, f"waiting for the {SOLVER_LABELS.get(solver, solver)} kernels to compile"
+        return (yield from job)
+
+    def report(self) -> str:
+        done = ", ".join(f"{SOLVER_LABELS.get(k, k)} {v:.0f} s" for k, v in self.seconds.items())
+        return (f"Warp kernels compiled in the background ({done})" if done else "Warp kernels: no warm-up") + (
+            f"; warm-up failed ({self.error}), the bakes compile" if self.error else "")
 
 
 def bpy_save(path: Path) -> None:

@@ -65,7 +65,7 @@ def run_job(job, progress=None):
         job.close()
 
 
-def run_side_by_side(jobs, max_running: int = 2) -> list:
+def run_side_by_side(jobs, max_running: int = 2, on_done=None) -> list:
     """Drive several job generators at once, at most ``max_running`` of them started at a time, and return their
     results in order (an exception a job raised takes the place of its result; the others go on).
 
@@ -73,7 +73,7 @@ def run_side_by_side(jobs, max_running: int = 2) -> list:
     ``None``) follows its fraction.  Jobs whose heavy work runs in a worker thread (a bake's simulation: Warp's CPU
     kernels use one core each) then share the CPU cores, while their Blender parts (reading, writing) stay in this
     thread.  A :class:`~.errors.CancelledError` (a progress cancelled, Ctrl-C) closes every started job and is
-    raised.
+    raised.  ``on_done(index, result)`` is called as each job ends (in this thread).
     """
     from .errors import CancelledError
 
@@ -91,17 +91,18 @@ def run_side_by_side(jobs, max_running: int = 2) -> list:
                     fraction, status = next(gen)
                 except StopIteration as stop:
                     results[i] = stop.value
-                    del running[i]
-                    continue
                 except CancelledError:
                     raise
                 except Exception as exc:        # noqa: BLE001 - handed to the caller as this job's result
                     results[i] = exc
                     gen.close()
-                    del running[i]
+                else:
+                    if progress is not None:
+                        progress.step(max(0.0, float(fraction) * progress.total - progress.done), status)
                     continue
-                if progress is not None:
-                    progress.step(max(0.0, float(fraction) * progress.total - progress.done), status)
+                del running[i]
+                if on_done is not None:
+                    on_done(i, results[i])
     finally:
         for gen, _ in running.values():
             gen.close()

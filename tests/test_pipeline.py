@@ -339,3 +339,40 @@ def test_wave_speed_ignores_held_and_empty_material():
     f = MaterialField(unit_cube_grid(), occ, [E, 1e11], [nu, nu], [rho, rho], [jelly, held])
     expect = np.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
     assert max_wave_speed(f) == pytest.approx(expect, rel=1e-6)
+
+
+def test_jobs_side_by_side_share_the_cores_keep_order_and_errors(tmp_path):
+    """core.features.run_side_by_side (the demo's bakes): at most N jobs started at once, each job's worker
+    thread runs while the others are polled; results in order, an error in one job leaves the others going."""
+    from unipixie.core.bake import BackgroundRun
+    from unipixie.core.errors import CancelledError
+    from unipixie.core.features import run_side_by_side
+    from unipixie.core.progress import Progress
+
+    def job(k, seconds=0.3, fail=False):
+        run = BackgroundRun(lambda progress: (time.sleep(seconds), k)[1]).start()
+        try:
+            while not run.wait(0.01):
+                yield 0.5, f"job {k}"
+        finally:
+            if not run.done:
+                run.cancel(wait=True)
+        if fail:
+            raise UserError(f"job {k} failed")
+        return run.result()
+
+    done = []
+    t0 = time.perf_counter()
+    out = run_side_by_side([(lambda k=k: job(k, fail=k == 2), None) for k in range(4)], max_running=2,
+                           on_done=lambda i, r: done.append(i))
+    two = time.perf_counter() - t0
+    assert out[:2] == [0, 1] and isinstance(out[2], UserError) and out[3] == 3 and sorted(done) == [0, 1, 2, 3]
+    t0 = time.perf_counter()
+    assert run_side_by_side([(lambda k=k: job(k), None) for k in range(4)], max_running=1) == [0, 1, 2, 3]
+    one = time.perf_counter() - t0
+    assert one >= 1.2 and two < 0.8 * one
+
+    progress = Progress(show_bar=False)
+    progress.cancel()
+    with pytest.raises(CancelledError):
+        run_side_by_side([(lambda: job(0), progress.sub(1.0, 1.0))], max_running=1)
