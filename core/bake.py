@@ -616,6 +616,8 @@ class SimulationResult:
     skinning_weights: LBS only — (N, H+1) float64 handle weights of the vertices, the constant handle
         last, as the LBS solver defines them (see :func:`lbs_blend_form`).
     material_description / warnings / seconds: for the report and the bake record.
+    ground_height: world z (metres) of the ground plane the run used, or None; an armature bake
+        keeps the skinned vertices above it as the solver's tracked points are (:func:`plan_armature`).
     """
 
     trajectory: object
@@ -623,6 +625,7 @@ class SimulationResult:
     material_description: str = ""
     warnings: list = field(default_factory=list)
     seconds: float = 0.0
+    ground_height: Optional[float] = None
 
 
 def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional[Progress] = None) -> SimulationResult:
@@ -659,7 +662,8 @@ def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional
     if options.solver == "lbs":
         weights = lbs_vertex_weights(sim, traj, obj)
     return SimulationResult(traj, skinning_weights=weights, material_description=resolved.description,
-                            warnings=warnings, seconds=time.perf_counter() - t0)
+                            warnings=warnings, seconds=time.perf_counter() - t0,
+                            ground_height=scenario.ground_height)
 
 
 class FrameProgress(Progress):
@@ -932,6 +936,8 @@ class ArmaturePlan:
     labels: which LBS handle each bone comes from.
     max_error: largest distance (metres) between the armature's result and the trajectory.
     bone_length: display length of the bones, Blender units.
+    ground_height: world z (metres) below which no vertex may go (a ground modifier after the
+        Armature lifts them onto it), or None when no vertex dips below the ground.
     """
 
     heads: np.ndarray
@@ -944,6 +950,7 @@ class ArmaturePlan:
     labels: list
     max_error: float
     bone_length: float
+    ground_height: Optional[float] = None
 
     @property
     def bone_count(self) -> int:
@@ -1066,7 +1073,8 @@ def armature_deform(rest_local: np.ndarray, weights: np.ndarray, deform: np.ndar
 
 
 def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.ndarray, positions: np.ndarray,
-                  tolerance: float = ARMATURE_TOLERANCE) -> tuple[Optional[ArmaturePlan], str]:
+                  tolerance: float = ARMATURE_TOLERANCE,
+                  ground_height: Optional[float] = None) -> tuple[Optional[ArmaturePlan], str]:
     """Map an LBS motion to bones, or explain why it cannot be done.
 
     weights: (N, H+1) vertex weights (last = the constant handle); handle_transforms: (T, H+1, 3, 4)
@@ -1079,6 +1087,12 @@ def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.nd
     mirrors or collapses space (det ≤ 0: no rotation and positive scale can make it), or when the
     motion evaluated exactly as the Armature modifier does misses the trajectory by more than
     ``tolerance × size``.
+
+    ground_height: world z (metres) of the ground plane, or None.  The contact law lets the skinned
+    surface dip into the ground between its contact samples; the solver lifts its tracked points back
+    onto the plane (:mod:`unipixie.solvers.contact`), which no bone can do.  The armature's result is
+    then evaluated with the same lift, done in Blender by a ground modifier after the Armature
+    (``ArmaturePlan.ground_height``; set only when some vertex needs it).
     """
     W = np.asarray(weights, dtype=np.float64)
     N = obj.vertex_count
@@ -1096,6 +1110,10 @@ def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.nd
     heads = np.where(wsum[:, None] > 1e-9, (bone_w.T @ x0) / np.maximum(wsum, 1e-12)[:, None], x0.mean(0))
     loc, Uq, scale, Vq = chain_channels(L, heads)
     moved = obj.to_world(armature_deform(x0, bone_w, chain_deform(heads, loc, Uq, scale, Vq)))
+    lifted = None
+    if ground_height is not None and float(moved[..., 2].min()) < ground_height:
+        lifted = float(ground_height)
+        np.maximum(moved[..., 2], lifted, out=moved[..., 2])
     err = float(np.max(np.linalg.norm(moved - np.asarray(positions, dtype=np.float64), axis=-1)))
     limit = tolerance * max(obj.size, 1e-12)
     if not err <= limit:
@@ -1104,7 +1122,7 @@ def plan_armature(obj: BakeObject, weights: np.ndarray, handle_transforms: np.nd
     bone_length = 0.1 * float(np.max(x0.max(0) - x0.min(0)) or 1.0)
     return ArmaturePlan(heads=heads, local_maps=L, parent_location=loc, parent_rotation=Uq, parent_scale=scale,
                         child_rotation=Vq, weights=bone_w.astype(np.float32), labels=labels, max_error=err,
-                        bone_length=bone_length), ""
+                        bone_length=bone_length, ground_height=lifted), ""
 
 
 # --------------------------------------------------------------------------- PC2 point caches

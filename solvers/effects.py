@@ -63,6 +63,9 @@ class PhysicsTerms:
     quadratic_drag: k, 1/m — body force −k·m·‖v‖·v.
     damping_eta: η, Pa·s — Kelvin–Voigt viscous stress 2η·sym(∇v) (leaves rigid motion alone).
     friction_mu: μ — Coulomb friction at the ground (0 = the base model's frictionless ground).
+    ground_stiffness: Pa/m — normal stiffness of the ground per unit contact area (``inf`` = the base model's
+        rigid ground; solvers realise it as the stiffest contact their step resolves, see :mod:`.contact`).
+    ground_damping: Pa·s/m — normal dashpot of the ground per unit contact area (0 = the base model).
     yield_stress: Pa — von Mises yield of the elastic base material (``inf`` = no plasticity).
     extra_acceleration: (3,) m/s² — uniform acceleration on all mass (wind, mis-stated gravity).
     E_scale: ``None`` or (S,) float64 — multiplies Young's modulus of each solver sample point
@@ -73,6 +76,8 @@ class PhysicsTerms:
     quadratic_drag: float = 0.0
     damping_eta: float = 0.0
     friction_mu: float = 0.0
+    ground_stiffness: float = math.inf
+    ground_damping: float = 0.0
     yield_stress: float = math.inf
     extra_acceleration: np.ndarray = field(default_factory=lambda: np.zeros(3))
     E_scale: Optional[np.ndarray] = None
@@ -81,6 +86,7 @@ class PhysicsTerms:
         """True when no effect changes anything (the base model)."""
         return (self.linear_drag == 0 and self.quadratic_drag == 0 and self.damping_eta == 0
                 and self.friction_mu == 0 and math.isinf(self.yield_stress)
+                and math.isinf(self.ground_stiffness) and self.ground_damping == 0
                 and not np.any(self.extra_acceleration) and (self.E_scale is None or np.all(self.E_scale == 1.0)))
 
     def E_multiplier(self, count: int) -> np.ndarray:
@@ -261,6 +267,30 @@ class GroundFriction(Effect):
         terms.friction_mu = max(terms.friction_mu, self.values["mu"])
 
 
+class ContactDamping(Effect):
+    """The ground as a damped, yielding floor (a Kelvin–Voigt foundation) instead of the base model's rigid one.
+
+    Where the solid's surface is a depth d below the ground plane, the ground pushes it back with the normal
+    traction p = k·d + c·ḋ (never pulling).  The damper takes energy only while the floor gives: on a rigid
+    floor (k → ∞) nothing moves at the contact and no contact law can take energy from an elastic solid,
+    so ``c`` and ``k`` are fitted together.  Both are per unit contact area, so the law does not depend on a
+    solver's resolution (``docs/contact.md``).
+    """
+
+    name = "contact_damping"
+    label = "Contact damping (damped, yielding ground)"
+    law = ("the ground pushes the solid's surface back with the normal traction k·d + c·ḋ at depth d (never "
+           "pulling): a damped floor that takes energy at every contact")
+    signature = "the solid loses energy, and rebounds lower, only at contacts with the ground; longer contacts"
+    params = (Param("c", "Pa·s/m", 2.0e4, 0.0, 1.0e8, "normal damping per unit contact area", log_scale=True),
+              Param("k", "Pa/m", 1.0e6, 1.0e3, 1.0e11, "normal stiffness of the floor per unit contact area",
+                    log_scale=True))
+
+    def apply(self, terms, ctx):
+        terms.ground_stiffness = min(terms.ground_stiffness, self.values["k"])
+        terms.ground_damping = max(terms.ground_damping, self.values["c"])
+
+
 class Plasticity(Effect):
     name = "plasticity"
     label = "Plasticity (von Mises)"
@@ -347,7 +377,7 @@ class StiffnessRegion(Effect):
 
 
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
-    LinearDrag, QuadraticDrag, MaterialDamping, GroundFriction, Plasticity, Wind, StiffnessRegion)}
+    LinearDrag, QuadraticDrag, MaterialDamping, GroundFriction, ContactDamping, Plasticity, Wind, StiffnessRegion)}
 """Every registered effect class by name."""
 
 

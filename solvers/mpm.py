@@ -70,9 +70,15 @@ class _Tuning:
 class MPMSettings:
     """Numerical settings of the MPM solver (SI units).
 
-    dx: grid cell size in metres; ``None`` = the body's largest extent / ``cells_across`` for a
-        mesh, or ``particles_per_cell_axis`` × the point spacing for a particle set.
+    dx: grid cell size in metres; ``None`` = for a mesh, the finer of the body's largest extent / ``cells_across``
+        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, but no
+        finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
+        ``particles_per_cell_axis`` × the point spacing.
     cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None).
+    cells_across_thinnest: grid cells across the thinnest parts of a mesh body (when ``dx`` is None): a slender
+        bar, a trunk or a leaf bends as the continuum does only with several cells across it
+        (docs/fidelity.md measures how many).
+    auto_max_particles: the particle budget of the automatic ``dx``.
     particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
         particle volume = cell volume / particles per cell.
     jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
@@ -110,6 +116,8 @@ class MPMSettings:
 
     dx: Optional[float] = None
     cells_across: int = 32
+    cells_across_thinnest: int = 4
+    auto_max_particles: int = 2_000_000
     particles_per_cell_axis: int = 2
     jitter: float = 0.0
     seed: int = 0
@@ -143,8 +151,8 @@ class MPMSettings:
             self.dx = positive("dx", self.dx)
         if self.max_dt is not None:
             self.max_dt = positive("max_dt", self.max_dt)
-        for name in ("cells_across", "particles_per_cell_axis", "max_substeps_per_frame", "max_grid_nodes",
-                     "max_particles"):
+        for name in ("cells_across", "cells_across_thinnest", "auto_max_particles", "particles_per_cell_axis",
+                     "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
             setattr(self, name, positive(name, getattr(self, name), integer=True))
         self.cfl = positive("cfl", self.cfl)
         self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
@@ -308,6 +316,8 @@ class MPMSimulation(Simulation):
     def __init__(self, body: Body, scenario: Scenario, frame_times, device: str, settings: MPMSettings):
         super().__init__(body, scenario, frame_times, device)
         self.settings = settings
+        self.warnings: list[str] = list(body.warnings)
+        self.thinnest_part: Optional[float] = None  # m, measured when dx is chosen automatically
         self._buffer_sets: dict[int, _Buffers] = {}  # batch size -> device arrays (least recently used first)
         self._kc = None  # mpm_kernels_cuda, imported on first use
         self._profile: Optional[list] = None  # (section, start, end) while profile() runs
@@ -327,8 +337,7 @@ class MPMSimulation(Simulation):
             dx = s.dx if s.dx is not None else s.particles_per_cell_axis * volume ** (1.0 / 3.0)
             volumes = np.full(len(points), volume)
         else:
-            extent = float(np.max(np.asarray(body.mesh.extents, dtype=np.float64)))
-            dx = s.dx if s.dx is not None else extent / s.cells_across
+            dx = s.dx if s.dx is not None else self._automatic_dx(body.mesh)
             spacing = dx / s.particles_per_cell_axis
             estimate = float(np.prod(np.ceil(np.asarray(body.mesh.extents) / spacing)))
             if estimate > 4 * s.max_particles:
@@ -384,6 +393,10 @@ class MPMSimulation(Simulation):
         tv0[tracked_held] = 0.0
 
         self.dx = float(dx)
+        # a particle stands for a cube of material: its lower face touches the ground (solvers/contact.py)
+        spacing = float(np.mean(volumes)) ** (1.0 / 3.0)
+        self.contact_radius = 0.5 * spacing
+        self.contact_area = spacing * spacing
         self.sample_positions = points
         self.particle_volume = volumes
         self.material = sampled
@@ -428,6 +441,26 @@ class MPMSimulation(Simulation):
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
 
+    def _automatic_dx(self, mesh) -> float:
+        """dx (m) for a mesh body when the settings give none (see :class:`MPMSettings`); records a warning when the
+        particle budget keeps the thinnest parts under-resolved."""
+        from .sampling import thinnest_part
+
+        s = self.settings
+        extent = float(np.max(np.asarray(mesh.extents, dtype=np.float64)))
+        thin = thinnest_part(mesh)
+        dx = min(extent / s.cells_across, thin / s.cells_across_thinnest)
+        volume = float(mesh.volume) if mesh.is_watertight and mesh.volume > 0 else float(np.prod(mesh.extents))
+        budget_dx = s.particles_per_cell_axis * (volume / s.auto_max_particles) ** (1.0 / 3.0)
+        if dx < budget_dx:
+            dx = budget_dx
+            self.warnings.append(f"MPM: the thinnest parts ({thin * 1000:.3g} mm) get only {thin / dx:.1f} cells "
+                                 f"across within the particle budget (settings auto_max_particles = "
+                                 f"{s.auto_max_particles:,}); their bending is resolved coarsely - give dx or a "
+                                 "larger budget (a GPU affords millions of particles)")
+        self.thinnest_part = thin
+        return dx
+
     @property
     def particle_count(self) -> int:
         return len(self.sample_positions)
@@ -469,7 +502,7 @@ class MPMSimulation(Simulation):
         env = {"dt": wp.zeros(envs, dtype=float, device=dev), "steps": wp.zeros(envs, dtype=wp.int32, device=dev),
                "origin": wp.zeros(envs, dtype=wp.vec3, device=dev), "yield": wp.zeros(envs, dtype=float, device=dev),
                "eta": wp.zeros(envs, dtype=float, device=dev), "acc": wp.zeros(envs, dtype=wp.vec3, device=dev),
-               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "friction": wp.zeros(envs, dtype=float, device=dev),
+               "drag": wp.zeros(envs, dtype=wp.vec2, device=dev), "ground": wp.zeros(envs, dtype=wp.vec3, device=dev),
                "kick": wp.zeros(envs, dtype=float, device=dev)}
         sort_keys = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
         sort_values = wp.zeros(2 * n, dtype=wp.int32, device=dev) if self.settings.sort_particles else None
@@ -514,7 +547,7 @@ class MPMSimulation(Simulation):
         total = nodes * buf.envs
         buf.commands.clear()  # launches and graphs hold the old grid
         buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
-                    "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
+                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
         buf.grid_dims = grow
 
     # ------------------------------------------------------------------ running
@@ -538,13 +571,13 @@ class MPMSimulation(Simulation):
         # ---- per-environment parameters
         acc = np.zeros((E, 3))
         drag = np.zeros((E, 2))
-        friction = np.zeros(E)
+        ground_law = np.zeros((E, 3))  # (k_g Pa/m, c_g Pa·s/m, μ) of the contact law (solvers/contact.py)
         yield_stress = np.full(E, np.inf)
         eta = np.zeros(E)
         for e, terms in enumerate(terms_list):
             acc[e] = sc.gravity + np.asarray(terms.extra_acceleration, dtype=np.float64)
             drag[e] = (terms.linear_drag, terms.quadratic_drag)
-            friction[e] = terms.friction_mu
+            ground_law[e] = (min(terms.ground_stiffness, 1e30), terms.ground_damping, terms.friction_mu)
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
@@ -569,7 +602,7 @@ class MPMSimulation(Simulation):
         Env["eta"].assign(eta.astype(np.float32))
         Env["acc"].assign(acc.astype(np.float32))
         Env["drag"].assign(drag.astype(np.float32))
-        Env["friction"].assign(friction.astype(np.float32))
+        Env["ground"].assign(ground_law.astype(np.float32))
         buf.lost.zero_()
         self._p2g_kernel = self._choose_p2g(yield_stress)
         self._run_tuning = tuning
@@ -663,7 +696,7 @@ class MPMSimulation(Simulation):
                     "dt": dt_log[e].tolist(), "substeps": steps_log[e].tolist(),
                     "dt_min": float(dt_log[e].min()) if F_count > 1 else None,
                     "dt_max": float(dt_log[e].max()) if F_count > 1 else None,
-                    "substeps_total": int(steps_log[e].sum()), "wall_time_s": wall,
+                    "substeps_total": int(steps_log[e].sum()), "wall_time_s": wall, "warnings": list(self.warnings),
                     "particle_substeps": int(steps_log[e].sum()) * N}
             traj = Trajectory(times=times, positions=out_positions[e], solver=self.solver, meta=meta)
             if states is not None and e == 0:
@@ -868,12 +901,13 @@ class MPMSimulation(Simulation):
                                       inputs=[P["x"], P["v"], P["C"], P["F"], P["rot"], P["plastic"], P["mass"],
                                               P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
                                               Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
-                                              n, N, nodes, dims, dx, inv_dx, 0],
-                                      outputs=[G["mv"], G["held"], buf.lost])),
+                                              Env["ground"], has_ground, ground_z, self.contact_radius,
+                                              self.contact_area, n, N, nodes, dims, dx, inv_dx, 0],
+                                      outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
                     ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
-                                                      Env["drag"], Env["friction"], Env["origin"], buf.step_base,
-                                                      nodes, dims, dx, has_ground, ground_z, 0],
+                                                      Env["drag"], buf.step_base, nodes, 0, Env["ground"],
+                                                      G["contact"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
             kc = self._cuda_kernels()

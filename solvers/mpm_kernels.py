@@ -13,11 +13,12 @@ Layout (all float32, structure of arrays):
   ``dx``, so moving the block changes nothing physical.
 * tracked points: ``E`` × ``M`` massless points advected by the grid velocity.
 
-One substep is three launches: P2G (deformation update, return mapping, stress and the scatter
-of mass and momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the
-elastic fixed-corotated law only), :func:`grid_update` (forces, drag, boundary conditions;
-clears the accumulators for the next substep) and :func:`g2p` (gather, advection; also moves
-the tracked points).  Environments whose frame needs fewer substeps than the launch count skip
+One substep is three launches: P2G (deformation update, return mapping, stress, the ground's
+contact impulse on the particle (:func:`particle_ground_impulse`) and the scatter of mass and
+momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the elastic
+fixed-corotated law only), :func:`grid_update` (forces, drag, the clamp; clears the
+accumulators for the next substep) and :func:`g2p` (gather, advection; also moves the tracked
+points).  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
 separate runs.  The substep index is the launch parameter ``substep`` plus the device counter
 ``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
@@ -32,6 +33,7 @@ from __future__ import annotations
 import warp as wp
 
 from . import materials
+from .contact_kernels import ground_contact_impulse, rigid_contact_stiffness
 
 wp.set_module_options({"enable_backward": False})
 
@@ -63,9 +65,6 @@ HELD_MASS_FRACTION = wp.constant(0.25)
 
 The node plane on the face of a clamp box gets about half its mass from held material, the next
 plane outside about 5 %: a quarter fixes the first and frees the second."""
-
-GROUND_TOLERANCE_CELLS = wp.constant(0.01)
-"""Nodes up to this many cells above the ground plane count as on the ground (float32 round-off)."""
 
 TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
 """Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
@@ -205,6 +204,25 @@ def stencil_inside(base: wp.vec3, dims: wp.vec3i):
             and base[1] <= float(dims[1] - 3) and base[2] <= float(dims[2] - 3))
 
 
+@wp.func
+def particle_ground_impulse(xp: wp.vec3, vp: wp.vec3, m: float, p_wave_modulus: float, eta: float, dt: float,
+                            env: int, has_ground: int, ground_z: float, contact_radius: float, contact_area: float,
+                            env_ground: wp.array(dtype=wp.vec3)):
+    """The ground's impulse (N·s) on a particle over the substep (:func:`.contact_kernels.ground_contact_impulse`).
+
+    A particle stands for a cube of material: its lower face lies ``contact_radius`` (half the particle spacing,
+    m) below its centre and touches the ground over ``contact_area`` (the spacing², m²); p_wave_modulus: λ + 2μ
+    of its material (Pa); eta: its Kelvin–Voigt viscosity (Pa·s).  env_ground[env] = (k_g Pa/m, c_g Pa·s/m, μ).  Added to the particle's momentum
+    before the scatter, so the grid carries it.
+    """
+    if has_ground == 0:
+        return wp.vec3(0.0)
+    g = env_ground[env]
+    rigid_k = rigid_contact_stiffness(p_wave_modulus, contact_area, 2.0 * contact_radius)
+    return ground_contact_impulse(xp[2] - contact_radius, vp, m, contact_area, rigid_k,
+                                  2.0 * eta * rigid_k / p_wave_modulus, dt, ground_z, g[0], g[1], 0.0)
+
+
 # ------------------------------------------------------------------------------ substep kernels
 @wp.func
 def elastic_fixed_corotated(Fn: wp.mat33, q0: wp.quat, mu: float, lam: float):
@@ -321,10 +339,13 @@ def _make_p2g(general: bool):
             lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
             env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
             env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
+            env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
+            contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
             substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
-            lost: wp.array(dtype=wp.int32)):
-        """Deformation update, plasticity, stress and the fused scatter of mass and momentum (one atomic per node)."""
+            grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
+        """Deformation update, plasticity, stress, the ground's contact impulse and the fused scatter of mass and
+        momentum (one atomic per node; the contact impulse also to ``grid_contact``, N·s, for friction)."""
         p = wp.tid()
         if p >= n_particles:  # padding of a launch rounded up to whole warps
             return
@@ -356,8 +377,13 @@ def _make_p2g(general: bool):
 
         affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
         vp = v[p]
+        jn = float(0.0)
         if held:
             vp = wp.vec3(0.0)
+        else:
+            jn = particle_ground_impulse(xp, vp, m, lam_p[p] + 2.0 * mu_p[p], env_eta[env], dt, env, has_ground,
+                                         ground_z, contact_radius, contact_area, env_ground)[2]
+            vp = vp + wp.vec3(0.0, 0.0, jn / m)
         fx = (xp - origin) * inv_dx - base
         w = bspline_weights(fx)
         # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
@@ -381,6 +407,8 @@ def _make_p2g(general: bool):
                     wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
                     if held:
                         wp.atomic_add(grid_held, row + k, weight * m)
+                    if jn > 0.0:
+                        wp.atomic_add(grid_contact, row + k, weight * jn)
 
     p2g.__name__ = p2g.__qualname__ = "p2g_general" if general else "p2g_elastic"
     return wp.kernel(p2g)
@@ -394,11 +422,12 @@ p2g_elastic = _make_p2g(False)
 def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
                 env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
                 env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
-                env_friction: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3),
-                step_base: wp.array(dtype=wp.int32),
-                nodes_per_env: int, dims: wp.vec3i, dx: float, has_ground: int, ground_z: float, substep: int,
+                step_base: wp.array(dtype=wp.int32), nodes_per_env: int, substep: int,
+                env_ground: wp.array(dtype=wp.vec3), grid_contact: wp.array(dtype=float),
                 grid_v: wp.array(dtype=wp.vec4)):
-    """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, ground contact.
+    """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, and Coulomb friction with
+    the ground's normal impulse that P2G gathered at the node (``grid_contact``, N·s): the tangential velocity
+    loses at most μ × that impulse / the node's mass (the ground's normal push acts on the particles, in P2G).
 
     Writes (velocity, mass) to ``grid_v`` and clears the accumulators for the next substep.
     """
@@ -420,21 +449,14 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
         vel = vel / (1.0 + drag[1] * wp.length(vel) * dt)
     if grid_held[n] >= HELD_MASS_FRACTION * m:
         vel = wp.vec3(0.0)
-    elif has_ground != 0:
-        local = n - env * nodes_per_env
-        k = local % dims[2]
-        z = env_origin[env][2] + float(k) * dx
-        if z <= ground_z + GROUND_TOLERANCE_CELLS * dx and vel[2] < 0.0:
-            # separating contact: remove the approaching normal velocity; Coulomb friction on the rest
-            vn = -vel[2]
-            vt = wp.vec3(vel[0], vel[1], 0.0)
-            speed = wp.length(vt)
-            mu = env_friction[env]
-            if speed <= mu * vn:
-                vt = wp.vec3(0.0)
-            elif speed > 0.0:
-                vt = vt * (1.0 - mu * vn / speed)
-            vel = vt
+    jn = grid_contact[n]
+    if jn > 0.0:
+        mu = env_ground[env][2]
+        vt = wp.vec3(vel[0], vel[1], 0.0)
+        st = wp.length(vt)
+        if mu > 0.0 and st > 0.0:
+            vel = vel - vt * (wp.min(mu * jn / m, st) / st)
+        grid_contact[n] = 0.0
     grid_v[n] = wp.vec4(vel[0], vel[1], vel[2], m)
     grid_mv[n] = wp.vec4(0.0)
     grid_held[n] = 0.0

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .mpm_kernels import (HELD_FLAG, ClassLaw, bspline_weights, particle_advect, particle_stress_elastic,
+from .mpm_kernels import (HELD_FLAG, ClassLaw, bspline_weights, particle_advect, particle_ground_impulse,
+                          particle_stress_elastic,
                           particle_stress_general, stencil_base, stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
@@ -208,9 +209,11 @@ def _make_p2g(general: bool, scatter: str):
             lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
             env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
             env_eta: wp.array(dtype=float), env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
+            env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
+            contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
             substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
-            lost: wp.array(dtype=wp.int32)):
+            grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
         p = wp.tid()
         env = int(0)
         active = bool(False)
@@ -253,8 +256,13 @@ def _make_p2g(general: bool, scatter: str):
 
         affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
         vp = v[p]
+        jn = float(0.0)
         if held:
             vp = wp.vec3(0.0)
+        else:
+            jn = particle_ground_impulse(xp, vp, m, lam_p[p] + 2.0 * mu_p[p], env_eta[env], dt, env, has_ground,
+                                         ground_z, contact_radius, contact_area, env_ground)[2]
+            vp = vp + wp.vec3(0.0, 0.0, jn / m)
         fx = (xp - origin) * inv_dx - base
         w = bspline_weights(fx)
         cols = wp.transpose(affine * dx)
@@ -276,6 +284,8 @@ def _make_p2g(general: bool, scatter: str):
                         scatter_vector(grid_mv, row + k, contribution)
                     if held:
                         wp.atomic_add(grid_held, row + k, weight * m)
+                    if jn > 0.0:
+                        wp.atomic_add(grid_contact, row + k, weight * jn)
 
     name = f"p2g_{scatter}_{'general' if general else 'elastic'}"
     p2g.__name__ = p2g.__qualname__ = name

@@ -61,7 +61,12 @@ E = S / (6V), S = Σ_s κ_s L_s².  Attributing to each anchor its springs' shar
 
     k_i = c_E · 12 E_i V_i / Σ_{s∋i} w_s L_s          (with κ_s as above)
 
-with E_i the volume mean of E over anchor i's cell.  The calibration ``c_E``
+with E_i the volume mean of E over anchor i's cell.  Σ_{s∋i} w_s L_s assumes the anchor's springs spread evenly
+over all directions; in a thin part (a bar or a leaf a few anchors thick) they lie along the part, and the
+network is stiffer there (a 0.04 × 0.02 m bar 3 anchors thick stretched 10 % too little).  So the sum is
+replaced by the one that fits the anchor's affine stiffness tensor (∝ k_i Σ w L d⊗d⊗d⊗d) to the isotropic
+one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:meth:`AnchorNetwork.fabric_sums`; equal to
+Σ w L for evenly spread springs; the bar then stretches within 1 %).  The calibration ``c_E``
 (:data:`STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
@@ -100,8 +105,9 @@ from .api import Simulation
 from .body import Body
 from .effects import PhysicsTerms
 from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_material
-from .sampling import farthest_point_sampling, fill_mesh, voxel_downsample
+from .sampling import farthest_point_sampling, fill_mesh, thickness_at, voxel_downsample
 from .scenario import Scenario
+from .contact import RIGID_CONTACT_BETA
 
 DEFAULT_ANCHORS = 2048
 """N_a: anchors of the network (the paper's spring head predicts N_a stiffnesses + 1 softness)."""
@@ -117,12 +123,18 @@ SPRING_PARAM_COUNT = DEFAULT_ANCHORS + 1
 """Length of the model's spring-mass vector (k ∈ R^{N_a}, η): 2049."""
 NETWORK_POISSON_RATIO = 0.25
 """Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ)."""
+P_WAVE_PER_E = (1 - NETWORK_POISSON_RATIO) / ((1 + NETWORK_POISSON_RATIO) * (1 - 2 * NETWORK_POISSON_RATIO))
+"""M / E = (1 − ν) / ((1 + ν)(1 − 2ν)) of the network's material (ν = 1/4): its P-wave modulus per unit E."""
 AFFINE_STIFFNESS_FACTOR = 12.0
 """k_i = c_E · 12 E_i V_i / Σ w_s L_s (affine network, see module docstring)."""
 AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
 STIFFNESS_CALIBRATION = 0.94
 """c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
+ANCHORS_ACROSS_THIN = 3.0
+"""Anchors wanted through the thickness of thin parts (adaptive anchor sampling, :func:`select_anchors`)."""
+MAX_ANCHOR_REFINEMENT = 4.0
+"""Thin parts get anchors at most this many times closer together than the uniform spacing."""
 GPU_LANES_PER_ANCHOR = 32
 """Threads (one warp) that gather an anchor's ~40-60 half-edges on a GPU (settings.lanes_per_anchor)."""
 
@@ -257,6 +269,22 @@ class AnchorNetwork:
     def count(self) -> int:
         return int(len(self.anchors))
 
+    def fabric_sums(self, weights: np.ndarray) -> np.ndarray:
+        """Per anchor (Σ w L)² / ‖Σ w L d⊗d⊗d⊗d‖² · (1/5), (N,) m: the Σ w L that the least-squares fit of the
+        network's affine stiffness tensor to an isotropic one divides by (module docstring).  Equal to Σ w L
+        when an anchor's springs spread evenly over all directions; larger where they lie in a thin part's plane
+        or along its axis (the network is stiffer along those directions than the trace says)."""
+        n = self.count
+        d = self.anchors[self.springs[:, 1]] - self.anchors[self.springs[:, 0]]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        wl = weights * self.rest_length
+        quartic = np.einsum("si,sj,sk,sl->sijkl", d, d, d, d).reshape(len(d), 81) * wl[:, None]
+        A = np.zeros((n, 81))
+        np.add.at(A, self.springs[:, 0], quartic)
+        np.add.at(A, self.springs[:, 1], quartic)
+        swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
+        return 5.0 * np.einsum("ij,ij->i", A, A) / np.maximum(swl, 1e-300)
+
     def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""
         n = self.count
@@ -317,40 +345,73 @@ def fill_solid(body: Body, target_points: int, max_points: int) -> tuple[np.ndar
     return pts, np.full(len(pts), volume / len(pts))
 
 
-def select_anchors(points: np.ndarray, count: int, pinned: np.ndarray | None = None) -> np.ndarray:
+def select_anchors(points: np.ndarray, count: int, pinned: np.ndarray | None = None,
+                   point_volume: float | None = None, thickness: np.ndarray | None = None,
+                   across: float = ANCHORS_ACROSS_THIN) -> np.ndarray:
     """Indices into ``points`` of ``count`` anchors: voxel down-sampling, then farthest-point order.
 
-    When ``pinned`` (bool mask of clamped points) is given and non-empty, the clamped region
-    gets anchors in proportion to its share of the points (at least 4 when it has them).
+    points: (F, 3) m fill points; pinned: (F,) bool, clamped points; point_volume: m³ each; thickness: (F,) m,
+    the local thickness of the part each point belongs to (:func:`~.sampling.thickness_at`).
+    With ``thickness``, the sampling is adaptive: where a part is thinner than ``across`` uniform anchor
+    spacings, the wanted spacing shrinks in proportion (to at most :data:`MAX_ANCHOR_REFINEMENT` times finer), so
+    a trunk, a leaf or a slender bar gets about ``across`` anchors through its thickness when the count allows
+    (a bending part of one or two anchors' thickness bends far too easily or not at all).
+    The clamped region gets anchors only where it meets free material (within three anchor spacings of it; the
+    rest of a clamp holds nothing), in proportion to that volume (at least 4 when it has them).
     """
     pts = np.asarray(points, dtype=np.float64)
     n = len(pts)
     count = min(int(count), n)
+    vol = float(point_volume) if point_volume else None
 
     def thin(idx: np.ndarray, k: int) -> np.ndarray:
         if k <= 0 or len(idx) == 0:
             return np.zeros(0, dtype=np.int64)
         sub = pts[idx]
-        if len(idx) > 3 * k:
-            ext = np.ptp(sub, axis=0)
-            occupied_volume = max(float(np.prod(np.maximum(ext, 1e-12))), 1e-30)
-            voxel = (occupied_volume / (3.0 * k)) ** (1.0 / 3.0)
+        ext = np.ptp(sub, axis=0)
+        occupied = len(idx) * vol if vol else max(float(np.prod(np.maximum(ext, 1e-12))), 1e-30)
+        uniform = (occupied / k) ** (1.0 / 3.0)
+        if len(idx) > 8 * k:
+            voxel = 0.5 * uniform if thickness is not None else (occupied / (3.0 * k)) ** (1.0 / 3.0)
             cand = voxel_downsample(sub, voxel)
-            # the bounding box over-estimates the volume of non-convex solids: shrink until enough
-            while len(cand) < k:
+            while len(cand) < 2 * k:  # the volume over-estimates sparse clouds: shrink until enough
                 voxel *= 0.7
                 cand = voxel_downsample(sub, voxel)
             idx = idx[cand]
             sub = pts[idx]
-        return idx[farthest_point_sampling(sub, k)]
+        spacing = None
+        if thickness is not None:
+            spacing = np.clip(thickness[idx] / (across * uniform), 1.0 / MAX_ANCHOR_REFINEMENT, 1.0)
+        return idx[farthest_point_sampling(sub, k, spacing=spacing)]
 
     if pinned is None or not np.any(pinned) or np.all(pinned):
         return thin(np.arange(n), count)
-    pin_idx = np.flatnonzero(pinned)
     free_idx = np.flatnonzero(~pinned)
-    n_pin = int(round(count * len(pin_idx) / n))
+    pin_idx = np.flatnonzero(pinned)
+    from scipy.spatial import cKDTree
+
+    uniform = (len(free_idx) * (vol or 1.0) / max(count, 1)) ** (1.0 / 3.0) if vol else None
+    if uniform:
+        near, _ = cKDTree(pts[free_idx]).query(pts[pin_idx], distance_upper_bound=3.0 * uniform)
+        pin_idx = pin_idx[np.isfinite(near)] if np.isfinite(near).sum() >= 4 else pin_idx
+    n_pin = int(round(count * len(pin_idx) / (len(pin_idx) + len(free_idx))))
     n_pin = min(max(n_pin, min(4, len(pin_idx))), len(pin_idx), count - 1)
     return np.concatenate([thin(pin_idx, n_pin), thin(free_idx, count - n_pin)])
+
+
+def _springs_inside(anchors: np.ndarray, springs: np.ndarray, fill: np.ndarray, fill_spacing: float) -> np.ndarray:
+    """(S,) bool: springs whose segment stays inside the solid - points at ¼, ½ and ¾ of it within one fill spacing
+    of a fill point.  A spring through the air between two parts (two leaves, a trunk and the pot's rim) would
+    join what the solid does not."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(fill)
+    a, b = anchors[springs[:, 0]], anchors[springs[:, 1]]
+    ok = np.ones(len(springs), dtype=bool)
+    for t in (0.25, 0.5, 0.75):
+        d, _ = tree.query(a + t * (b - a), distance_upper_bound=fill_spacing)
+        ok &= np.isfinite(d)
+    return ok
 
 
 def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None = None,
@@ -376,7 +437,9 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
         pinned_fill = pinned_fill | scenario.pinned_mask(fill)
     if len(fill) < 2:
         raise UserError("the solid has fewer than 2 sample points; a spring-mass network needs at least 2 anchors")
-    a_idx = select_anchors(fill, settings.anchors, pinned_fill)
+    fill_spacing = float(np.mean(fvol)) ** (1.0 / 3.0)
+    thickness = thickness_at(fill, fill_spacing) if body.mesh is not None else None
+    a_idx = select_anchors(fill, settings.anchors, pinned_fill, point_volume=float(np.mean(fvol)), thickness=thickness)
     anchors = fill[a_idx]
     n = len(anchors)
     if n < settings.anchors:
@@ -411,6 +474,11 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
     springs = np.stack([lo[first], hi[first]], axis=1).astype(np.int64)
     rank = rank[first].astype(np.int64)
+    if body.mesh is not None:  # no springs through the air between parts; every anchor keeps its nearest three
+        inside = _springs_inside(anchors, springs, fill, fill_spacing) | (rank < 3)
+        if not np.all(inside):
+            warnings.append(f"{int((~inside).sum())} of {len(springs)} springs would cross empty space and were left out")
+        springs, rank = springs[inside], rank[inside]
     rest = np.linalg.norm(anchors[springs[:, 1]] - anchors[springs[:, 0]], axis=1)
     if np.any(rest <= 0):
         raise UserError("two anchors coincide (duplicate points in the body); remove duplicate points")
@@ -429,7 +497,7 @@ def anchor_positions(body: Body, anchors: int = DEFAULT_ANCHORS, scenario: Scena
 def stiffness_from_youngs_modulus(network: AnchorNetwork, E: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
     """Per-anchor stiffness k (N_a,) newtons that makes the network's modulus E (N_a,) Pa (module docstring)."""
     w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl, _ = network.spring_sums(w)
+    swl = network.fabric_sums(w)
     if np.any(swl <= 0):
         raise UserError("the softness weakens every spring of some anchor to zero; lower the softness η")
     return settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * np.asarray(E, np.float64) * network.volume / swl
@@ -438,7 +506,7 @@ def stiffness_from_youngs_modulus(network: AnchorNetwork, E: np.ndarray, setting
 def youngs_modulus_from_stiffness(network: AnchorNetwork, k: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
     """Inverse of :func:`stiffness_from_youngs_modulus`: the modulus (N_a,) Pa a stiffness vector stands for."""
     w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl, _ = network.spring_sums(w)
+    swl = network.fabric_sums(w)
     return np.asarray(k, np.float64) * swl / (settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * network.volume)
 
 
@@ -481,7 +549,7 @@ class SpringMassSimulation(Simulation):
         else:
             self.stiffness = stiffness_from_youngs_modulus(net, net.E, settings)
             self.youngs_modulus = net.E.copy()
-        _, sl = net.spring_sums(self.spring_weight)
+        sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
         self.spring_kappa = self._kappa(self.stiffness)
         # class yield stress (von Mises classes): per anchor
@@ -495,7 +563,11 @@ class SpringMassSimulation(Simulation):
             self.warnings.append("the spring-mass solver models " + ", ".join(sorted(inelastic))
                                  + " material as an elastic spring network (no granular/fluid/snow law)")
         self.inv_mass = np.where(net.pinned, 0.0, 1.0 / net.mass)
-        self.contact_offset = 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
+        # contact: each anchor's cell (its fill points and nearest surface samples) touches the ground with its
+        # lowest point, over the area V^(2/3) of a cube of its volume (solvers/contact.py)
+        self.contact_size = net.volume ** (1.0 / 3.0)
+        self.contact_area = self.contact_size ** 2
+        self._cell_points = self._contact_cells(body)
         # half-edges in CSR order
         s_idx = np.arange(len(net.springs))
         src = np.concatenate([net.springs[:, 0], net.springs[:, 1]])
@@ -526,6 +598,30 @@ class SpringMassSimulation(Simulation):
         self._upload_static()
 
     # -------------------------------------------------------------------------------- helpers
+    def _contact_cells(self, body: Body) -> tuple[np.ndarray, np.ndarray]:
+        """Each anchor's contact cell as CSR: (N + 1,) int32 starts and (Q, 3) m offsets X_q − X_i of its points.
+
+        The points are the anchor's fill points and the solid's surface samples (mesh vertices and area samples,
+        or the body's own points) nearest to it, so the lowest one reaches the solid's surface.
+        """
+        from scipy.spatial import cKDTree
+
+        net = self.network
+        pts = [net.fill_points]
+        if body.mesh is not None:
+            import trimesh
+
+            count = max(8 * net.count, 1000)
+            surf, _ = trimesh.sample.sample_surface_even(body.mesh, count, seed=0)
+            pts += [np.asarray(body.mesh.vertices, np.float64), np.asarray(surf, np.float64)]
+        # a point body's points stand for cubes of material: its surface lies half their spacing further out
+        self.contact_margin = 0.0 if body.mesh is not None else 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
+        allp = np.concatenate(pts)
+        _, owner = cKDTree(net.anchors).query(allp)
+        order = np.argsort(owner, kind="stable")
+        start = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=net.count))]).astype(np.int32)
+        return start, allp[order] - net.anchors[owner[order]]
+
     def _kappa(self, k_anchor: np.ndarray) -> np.ndarray:
         """(S,) N/m spring constants for per-anchor stiffness (N,) newtons."""
         s = self.network.springs
@@ -542,6 +638,10 @@ class SpringMassSimulation(Simulation):
         self._d_track_rest = wp.array(self.tracked_rest.astype(np.float32), dtype=wp.vec3, device=dev)
         self._d_bind_idx = wp.array(self.binding_index, dtype=wp.int32, device=dev)
         self._d_bind_w = wp.array(self.binding_weight.astype(np.float32), dtype=wp.float32, device=dev)
+        start, offsets = self._cell_points
+        self._d_cell_start = wp.array(start, dtype=wp.int32, device=dev)
+        self._d_cell_offsets = wp.array(offsets.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._d_contact_area = wp.array(self.contact_area.astype(np.float32), dtype=wp.float32, device=dev)
 
     def env_arrays(self, terms: PhysicsTerms) -> dict:
         """Per-environment numpy arrays for one set of physics terms (half-edge order)."""
@@ -621,7 +721,15 @@ class SpringMassSimulation(Simulation):
         d_accel = wp.array(accel, dtype=wp.vec3, device=dev)
         d_lin = wp.array(np.array([t.linear_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
         d_quad = wp.array(np.array([t.quadratic_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
-        d_mu = wp.array(np.array([t.friction_mu for t in terms_list], np.float32), dtype=wp.float32, device=dev)
+        ground_law = np.array([(min(t.ground_stiffness, 1e30), t.ground_damping, t.friction_mu) for t in terms_list])
+        d_ground_law = wp.array(ground_law.astype(np.float32), dtype=wp.vec3, device=dev)
+        # each anchor's rigid-floor spring k_r = β² M A / ℓ (solvers/contact.py), M of the network's material
+        M = P_WAVE_PER_E * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
+        rigid_k = RIGID_CONTACT_BETA ** 2 * M * (self.contact_area / self.contact_size)[None]
+        eta = np.array([t.damping_eta for t in terms_list])[:, None]
+        d_rigid_k = wp.array(rigid_k.astype(np.float32), dtype=wp.float32, device=dev)
+        d_rigid_c = wp.array((2.0 * eta * rigid_k / M).astype(np.float32), dtype=wp.float32, device=dev)
+        d_contact_low = wp.zeros((n_env, n), dtype=wp.float32, device=dev)
         x0 = np.tile(net.anchors.astype(np.float32), (n_env, 1, 1))
         v0 = np.tile(self.scenario.initial_velocities(net.anchors, net.mass).astype(np.float32), (n_env, 1, 1))
         v0[:, net.pinned] = 0.0
@@ -633,8 +741,7 @@ class SpringMassSimulation(Simulation):
             out_x = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
             out_v = wp.zeros((n_env, T, n), dtype=wp.vec3, device=dev)
         has_ground = 0 if self.scenario.ground_height is None else 1
-        # anchors stand for cells of material: they touch the ground half a fill spacing above it
-        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height) + self.contact_offset
+        ground = 0.0 if self.scenario.ground_height is None else float(self.scenario.ground_height)
 
         use_graph = wp.get_device(dev).is_cuda
         lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
@@ -642,8 +749,9 @@ class SpringMassSimulation(Simulation):
         def launch_substep(a, b, dt, record_cmd=False):
             """Launch (or record) one substep from buffer a to buffer b."""
             inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash, d_yield,
-                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad, d_mu,
-                      ground, has_ground, float(dt)]
+                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad,
+                      d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c, ground, has_ground,
+                      float(dt)]
             return wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
                                    record_cmd=record_cmd)
 
@@ -656,9 +764,13 @@ class SpringMassSimulation(Simulation):
             x, v = bufs[0]
             wp.launch(K.anchor_rotations, dim=(n_env, n), inputs=[x, self._d_rest_pos, self._d_start, self._d_nbr,
                                                                    self._d_gram_inv, rot], device=dev)
+            if has_ground:  # the cells' lowest points for the next frame's contacts (rotation lagged by a frame)
+                wp.launch(K.contact_depths, dim=(n_env, n), inputs=[rot, self._d_cell_start, self._d_cell_offsets,
+                                                                     self.contact_margin, d_contact_low], device=dev)
             if P:
                 wp.launch(K.bind_points, dim=(n_env, P), inputs=[x, self._d_rest_pos, rot, self._d_track_rest,
-                                                                  self._d_bind_idx, self._d_bind_w, out_track, frame],
+                                                                  self._d_bind_idx, self._d_bind_w, ground, has_ground,
+                                                                  out_track, frame],
                           device=dev)
             if particle_states:
                 wp.launch(K.store_state, dim=(n_env, n), inputs=[x, v, out_x, out_v, frame], device=dev)

@@ -13,32 +13,10 @@ from __future__ import annotations
 
 import warp as wp
 
+from .contact_kernels import ground_contact_impulse
+
 BIG = 1.0e30
 """Yield strain meaning "never yields"."""
-
-
-@wp.func
-def advance(xi: wp.vec3, vn: wp.vec3, dt: float, ground: float, has_ground: int, mu: float):
-    """Position update x + dt v with the ground plane z = ground as a hard, inelastic constraint.
-
-    An anchor that would cross the plane lands on it; the removed normal velocity is the
-    contact impulse (per unit mass) and Coulomb friction takes up to μ times it from the
-    tangential velocity (sticking when that is enough to stop it).
-    """
-    xn = xi + dt * vn
-    if has_ground != 0:
-        if xn[2] < ground:
-            vz = (ground - xi[2]) / dt
-            if vz > 0.0:  # started below the plane (initial overlap): push out, keep no velocity
-                vz = 0.0
-            jn = vz - vn[2]
-            vt = wp.vec3(vn[0], vn[1], 0.0)
-            st = wp.length(vt)
-            if st > 0.0 and mu > 0.0:
-                vt = vt * wp.max(0.0, 1.0 - mu * jn / st)
-            vn = wp.vec3(vt[0], vt[1], vz)
-            xn = wp.vec3(xi[0] + dt * vt[0], xi[1] + dt * vt[1], ground)
-    return xn, vn
 
 
 @wp.func
@@ -98,14 +76,21 @@ def kicked_velocity(e: int, vi: wp.vec3, f: wp.vec3, im: float, accel: wp.array(
 def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: float,
                      x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
                      accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
-                     quad_drag: wp.array(dtype=float), friction: wp.array(dtype=float),
-                     ground: float, has_ground: int, dt: float):
+                     quad_drag: wp.array(dtype=float), ground_law: wp.array(dtype=wp.vec3),
+                     contact_low: wp.array2d(dtype=float), contact_area: wp.array(dtype=float),
+                     rigid_k: wp.array2d(dtype=float), rigid_c: wp.array2d(dtype=float), ground: float,
+                     has_ground: int, dt: float):
     """Semi-implicit Euler update of anchor ``i`` (inverse mass ``im``, 1/kg) under the spring force ``f`` (N),
-    body acceleration, drags and ground contact; writes x_out[e, i], v_out[e, i]."""
+    body acceleration, drags and the ground's contact impulse (:func:`.contact_kernels.ground_contact_impulse` on
+    the anchor's cell, whose lowest point lies contact_low[e, i] m below the anchor); writes x_out[e, i],
+    v_out[e, i]."""
     vn = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, dt)
-    xn, vf = advance(xi, vn, dt, ground, has_ground, friction[e])
-    x_out[e, i] = xn
-    v_out[e, i] = vf
+    if has_ground != 0:
+        g = ground_law[e]
+        vn = vn + im * ground_contact_impulse(xi[2] - contact_low[e, i], vn, 1.0 / im, contact_area[i],
+                                              rigid_k[e, i], rigid_c[e, i], dt, ground, g[0], g[1], g[2])
+    x_out[e, i] = xi + dt * vn
+    v_out[e, i] = vn
 
 
 @wp.kernel
@@ -116,8 +101,10 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    start: wp.array(dtype=int), nbr: wp.array(dtype=int),
                    inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
                    accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
-                   quad_drag: wp.array(dtype=float), friction: wp.array(dtype=float),
-                   ground: float, has_ground: int, dt: float):
+                   quad_drag: wp.array(dtype=float), ground_law: wp.array(dtype=wp.vec3),
+                   contact_low: wp.array2d(dtype=float), contact_area: wp.array(dtype=float),
+                   rigid_k: wp.array2d(dtype=float), rigid_c: wp.array2d(dtype=float), ground: float,
+                   has_ground: int, dt: float):
     """One semi-implicit Euler substep of anchor ``i`` in environment ``e``, by a block of lanes
     (``wp.launch_tiled``, dim (E, N), block_dim lanes: 1 on the CPU, 32 on a GPU).  Lane ``l`` sums the
     half-edges start[i] + l, + block_dim, ...; a tile reduction adds the lanes' forces and lane 0
@@ -129,7 +116,10 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     dashpot: (E, H) N·s/m (explicit, along the spring); yield_strain: (E, H) (>= BIG: elastic).
     inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
     accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
-    friction: (E,) Coulomb μ at the ground plane z = ground (when has_ground != 0).
+    ground_law: (E,) (k_g Pa/m, c_g Pa·s/m, μ) of the contact law at the plane z = ground (when has_ground != 0);
+    contact_low: (E, N) m, depth of each anchor cell's lowest point below the anchor (:func:`contact_depths`);
+    contact_area: (N,) m²; rigid_k: (E, N) N/m, each anchor's rigid-floor spring; rigid_c: (E, N) N·s/m, its
+    material's Kelvin–Voigt damper (:mod:`.contact`).
     """
     e, i, lane = wp.tid()
     im = inv_mass[i]
@@ -143,8 +133,8 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     f = spring_force_sum(e, i, lane, wp.block_dim(), xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
     total = wp.tile_sum(wp.tile(f, preserve_type=True))
     if lane == 0:
-        integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, friction, ground,
-                         has_ground, dt)
+        integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
+                         contact_low, contact_area, rigid_k, rigid_c, ground, has_ground, dt)
 
 
 @wp.kernel
@@ -198,16 +188,34 @@ def anchor_rotations(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec
 
 
 @wp.kernel
+def contact_depths(rot: wp.array2d(dtype=wp.mat33), start: wp.array(dtype=int), offsets: wp.array(dtype=wp.vec3),
+                   margin: float, depth: wp.array2d(dtype=float)):
+    """depth[e, i] = margin + max over anchor i's cell points q of −(R_i (X_q − X_i))_z (m): how far the lowest
+    point of the anchor's cell (rotated with the anchor) lies below it; offsets[start[i]:start[i+1]] = X_q − X_i
+    at rest; margin (m): how far the solid reaches beyond its points (half their spacing for a point body)."""
+    e, i = wp.tid()
+    R = rot[e, i]
+    low = float(0.0)
+    for q in range(start[i], start[i + 1]):
+        low = wp.max(low, -(R * offsets[q])[2])
+    depth[e, i] = low + margin
+
+
+@wp.kernel
 def bind_points(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3), rot: wp.array2d(dtype=wp.mat33),
                 point_rest: wp.array(dtype=wp.vec3), bind_idx: wp.array2d(dtype=int),
-                bind_w: wp.array2d(dtype=float), out: wp.array3d(dtype=wp.vec3), frame: int):
-    """Position of bound point p: Σ_b w_pb (x_b + R_b (X_p − X_b)), written to out[e, frame, p]."""
+                bind_w: wp.array2d(dtype=float), ground: float, has_ground: int, out: wp.array3d(dtype=wp.vec3),
+                frame: int):
+    """Position of bound point p: Σ_b w_pb (x_b + R_b (X_p − X_b)), written to out[e, frame, p]; never below the
+    ground plane z = ground (when has_ground != 0)."""
     e, p = wp.tid()
     X = point_rest[p]
     acc = wp.vec3(0.0, 0.0, 0.0)
     for k in range(bind_idx.shape[1]):
         b = bind_idx[p, k]
         acc = acc + bind_w[p, k] * (x[e, b] + rot[e, b] * (X - x_rest[b]))
+    if has_ground != 0 and acc[2] < ground:
+        acc = wp.vec3(acc[0], acc[1], ground)
     out[e, frame, p] = acc
 
 

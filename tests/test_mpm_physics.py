@@ -290,7 +290,12 @@ def test_material_class_one_second_drop(cls):
         assert abs(height / height0 - 1) < 0.15 and abs(width / width0 - 1) < 0.15
         assert last[:, 2].mean() < first[:, 2].mean()  # came down
     elif cls == "metal":
-        assert abs(height / height0 - 1) < 0.03 and abs(width / width0 - 1) < 0.03
+        # on the rigid, lossless floor a stiff column keeps bouncing and may rock: compare its principal
+        # extents (rotation-invariant), not its extents along the world axes
+        def principal(x):
+            return np.sqrt(np.linalg.eigvalsh(np.cov((x - x.mean(0)).T)))
+
+        assert np.all(np.abs(principal(last) / principal(first) - 1) < 0.03)
     elif cls == "plasticine":
         assert height < 0.95 * height0 and width > 1.05 * width0 and plastic.max() > 0.05
         assert width < 3 * width0  # deformed, not flowing

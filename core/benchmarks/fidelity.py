@@ -1,0 +1,240 @@
+"""``unipixie bench fidelity``: the solvers' refinement study on the canonical scenes, and their agreement.
+
+For every scene of :mod:`._scenes` and every solver, the scene runs at a ladder of resolutions (MPM grid
+pitch, spring-mass anchors, LBS cubature points and step); each run's measurements are compared with the
+scene's reference (a closed form, or the converged independent referee: ``--referee FILE``, the JSON that
+``python -m unipixie.training.independent_fem.study`` writes).  Then, at each solver's bake default, the
+solvers' tracked-point trajectories are compared with each other (RMSE as a fraction of the object's size).
+
+Results: ``benchmarks/fidelity.json`` (one entry per scene × solver × resolution × metric: ``value``,
+``reference``, ``error`` (relative), ``default`` (bake default or not), ``wall_s``; and one per scene ×
+solver pair: ``metric: trajectory_rmse_over_size``) and, with ``--plots DIR``, one figure per scene
+(``fidelity_<scene>.png``: each metric against resolution, per solver, with the reference and its ±5 % band).
+
+The ladders are data (:data:`LADDERS`); ``--ladder fast`` keeps the runs a 2-core CPU affords in minutes,
+``full`` adds the fine levels meant for a GPU.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+HELP = "solver fidelity: refinement study on canonical scenes (cantilever, drop, slide, drag) and cross-solver agreement"
+
+TOLERANCE = 0.05
+"""Acceptance: within 5 % of the reference at the bake default; solvers within 5 % of the size of each other."""
+
+# scene -> solver -> [(label, settings, is bake default, ladder)]: "fast" runs in both ladders, "full" only in
+# the full one.  MPM's bake default is cells_across = 32 (of the largest extent).
+_MPM_CUBE = [("16 cells across", {"cells_across": 16}, False, "fast"),
+             ("24 cells across", {"cells_across": 24}, False, "fast"),
+             ("32 cells across", {}, True, "fast"),
+             ("48 cells across", {"cells_across": 48}, False, "full"),
+             ("64 cells across", {"cells_across": 64}, False, "full")]
+_SPRING = [("512 anchors", {"anchors": 512}, False, "fast"),
+           ("2048 anchors", {}, True, "fast"),
+           ("8192 anchors", {"anchors": 8192}, False, "full")]
+_LBS = [("200 cubature points", {"cubature_points": 200}, False, "fast"),
+        ("500 cubature points", {}, True, "fast"),
+        ("1500 cubature points", {"cubature_points": 1500}, False, "fast"),
+        ("500 points, 1 ms steps", {"max_dt": 1e-3}, False, "fast")]
+_MPM_BAR = [("bake default (32 cells across 0.5 m)", {}, True, "fast"),
+            ("2 cells across the thickness", {"dx": 0.01}, False, "fast"),
+            ("3 cells across the thickness", {"dx": 0.02 / 3}, False, "full"),
+            ("4 cells across the thickness", {"dx": 0.005}, False, "full"),
+            ("8 cells across the thickness", {"dx": 0.0025}, False, "full")]
+LADDERS = {
+    "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
+    "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
+    "drop": {"mpm": _MPM_CUBE, "spring_mass": _SPRING, "lbs": _LBS},
+    "slide": {"mpm": _MPM_CUBE[:3], "spring_mass": _SPRING[:2], "lbs": _LBS[:2]},
+    "drag_linear": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
+    "drag_quadratic": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
+}
+
+
+def add_arguments(p):
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
+    p.add_argument("--scenes", default=",".join(LADDERS), help=f"comma-separated scenes (default: all: {','.join(LADDERS)})")
+    p.add_argument("--solvers", default="mpm,spring_mass,lbs", help="comma-separated solvers (default: all three)")
+    p.add_argument("--ladder", choices=("fast", "full"), default="fast",
+                   help="fast: the resolutions a 2-core CPU affords; full: also the fine levels (a GPU)")
+    p.add_argument("--referee", metavar="JSON", help="reference values from the independent referee "
+                                                     "(scene -> metric -> value), for the scenes without a closed form")
+    p.add_argument("--plots", metavar="DIR", help="write fidelity_<scene>.png figures here")
+    p.add_argument("--trajectories", metavar="DIR", help="keep each run's tracked positions here (.npz), for re-plotting")
+
+
+def load_referee(path) -> dict:
+    """{scene: {metric: value}} from the referee's study JSON (``{"scenes": {scene: {metric: value}}}``)."""
+    from ...core.errors import read_json
+
+    doc = read_json(Path(path))
+    scenes = doc.get("scenes", doc) if isinstance(doc, dict) else None
+    if not isinstance(scenes, dict):
+        from ...core.errors import UserError
+
+        raise UserError(f"{path}: expected {{'scenes': {{scene: {{metric: value}}}}}}")
+    return scenes
+
+
+def run_scene(scene, solver: str, settings: dict, device: str):
+    """(measurements, trajectory, wall seconds) of one scene run."""
+    from ...solvers import api
+
+    t0 = time.perf_counter()
+    traj = api.simulate(solver, scene.body, scene.material, scene.scenario, scene.frame_times, scene.effects,
+                        device=device, settings=dict(settings))
+    wall = time.perf_counter() - t0
+    return scene.measure(traj), traj, wall
+
+
+def trajectory_rmse(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS distance (m) between two (T, N, 3) tracked-point trajectories of the same points."""
+    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
+
+
+def run(args) -> list[dict]:
+    from ...core.errors import UserError
+    from ...solvers.api import canonical_solver
+    from ...solvers.warp_runtime import device_description, resolve_device
+    from . import _scenes
+
+    device = resolve_device(args.device)
+    described = device_description(device)
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    unknown = [s for s in scenes if s not in LADDERS]
+    if unknown:
+        raise UserError(f"unknown scene(s) {unknown}; the scenes are {', '.join(LADDERS)}")
+    solvers = [canonical_solver(s) for s in args.solvers.split(",") if s.strip()]
+    referee = load_referee(args.referee) if args.referee else {}
+    keep = Path(args.trajectories) if args.trajectories else None
+    if keep:
+        keep.mkdir(parents=True, exist_ok=True)
+    results: list[dict] = []
+    for name in scenes:
+        scene = _scenes.scene(name)
+        refs = {k: v for k, v in scene.reference.items()}
+        for metric, value in referee.get(name, {}).items():
+            if metric not in refs and isinstance(value, (int, float)):
+                refs[metric] = (float(value), "independent referee (converged)")
+        at_default: dict = {}
+        for solver in solvers:
+            for label, settings, default, level in LADDERS[name].get(solver, []):
+                if level == "full" and args.ladder != "full":
+                    continue
+                print(f"[fidelity] {name} / {solver} / {label} ...", flush=True)
+                try:
+                    measured, traj, wall = run_scene(scene, solver, settings, device)
+                except Exception as exc:  # a resolution a solver cannot run is a result too
+                    results.append({"case": f"{name}: {solver}, {label}", "device": described, "metric": "failed",
+                                    "value": math.nan, "runs": 1, "error_message": str(exc)[:300],
+                                    "scene": name, "solver": solver, "resolution": label, "default": default})
+                    continue
+                if keep:
+                    np.savez_compressed(keep / f"{name}__{solver}__{label.replace(' ', '_')}.npz",
+                                        times=traj.times, positions=traj.positions)
+                if default:
+                    at_default[solver] = traj.positions
+                for metric, value in measured.items():
+                    entry = {"case": f"{name}: {solver}, {label}", "device": described, "metric": metric,
+                             "value": float(value), "unit": scene.units.get(metric, ""), "runs": 1,
+                             "scene": name, "solver": solver, "resolution": label, "settings": settings,
+                             "default": default, "wall_s": round(wall, 2)}
+                    if metric in refs:
+                        ref, source = refs[metric]
+                        entry.update(reference=float(ref), reference_source=source,
+                                     error=float(value / ref - 1.0) if ref else math.nan)
+                    results.append(entry)
+        if scene.cross_solver:
+            names = sorted(at_default)
+            for i, a in enumerate(names):
+                for b in names[i + 1:]:
+                    rmse = trajectory_rmse(at_default[a], at_default[b])
+                    results.append({"case": f"{name}: {a} vs {b} at bake defaults", "device": described,
+                                    "metric": "trajectory_rmse_over_size", "value": rmse / scene.size, "runs": 1,
+                                    "rmse_m": rmse, "size_m": scene.size, "scene": name, "solvers": [a, b]})
+    if args.plots:
+        plot(results, Path(args.plots))
+    return results
+
+
+def plot(results: list[dict], out_dir: Path) -> list[Path]:
+    """One figure per scene: each referenced metric against the runs' resolutions, per solver, with the reference
+    and its ±5 % band; the bake default circled.  Returns the written paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    by_scene: dict = {}
+    for r in results:
+        if "reference" in r and "scene" in r and "solver" in r:
+            by_scene.setdefault(r["scene"], []).append(r)
+    colours = {"mpm": "tab:blue", "spring_mass": "tab:orange", "lbs": "tab:green"}
+    for scene, rows in by_scene.items():
+        metrics = sorted({r["metric"] for r in rows})
+        fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4.0), squeeze=False)
+        for ax, metric in zip(axes[0], metrics):
+            sub = [r for r in rows if r["metric"] == metric]
+            ref = sub[0]["reference"]
+            ax.axhspan(ref * (1 - TOLERANCE), ref * (1 + TOLERANCE), color="0.85", label="reference ± 5 %")
+            ax.axhline(ref, color="k", lw=1)
+            for solver in ("mpm", "spring_mass", "lbs"):
+                pts = [r for r in sub if r["solver"] == solver]
+                if not pts:
+                    continue
+                xs = np.arange(len(pts))
+                ax.plot(xs, [r["value"] for r in pts], "o-", color=colours[solver], label=solver)
+                for x, r in zip(xs, pts):
+                    if r.get("default"):
+                        ax.plot([x], [r["value"]], "o", ms=13, mfc="none", mec=colours[solver])
+                    ax.annotate(r["resolution"], (x, r["value"]), fontsize=6, rotation=20,
+                                xytext=(3, 3), textcoords="offset points")
+            ax.set_title(f"{scene}: {metric}\nreference: {sub[0]['reference_source']}", fontsize=8)
+            ax.set_xlabel("refinement level (coarse → fine; circled: bake default)")
+            ax.set_ylabel(f"{metric} ({sub[0].get('unit', '')})")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = out_dir / f"fidelity_{scene}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def summary_table(results: list[dict]) -> str:
+    """Markdown: per scene and metric, each solver's value at each resolution with its error against the reference."""
+    rows = ["| scene | metric | solver | resolution | value | reference | error |", "|---|---|---|---|---|---|---|"]
+    for r in results:
+        if "solver" not in r or r.get("metric") in ("failed",):
+            continue
+        err = f"{100 * r['error']:+.1f} %" if "error" in r and math.isfinite(r["error"]) else ""
+        mark = " (bake default)" if r.get("default") else ""
+        rows.append(f"| {r['scene']} | {r['metric']} | {r['solver']} | {r['resolution']}{mark} | {r['value']:.5g} | "
+                    f"{r.get('reference', ''):.5g} | {err} |" if "reference" in r else
+                    f"| {r['scene']} | {r['metric']} | {r['solver']} | {r['resolution']}{mark} | {r['value']:.5g} | | |")
+    return "\n".join(rows)
+
+
+def main(argv=None):  # pragma: no cover - convenience for `python -m`
+    import argparse
+
+    p = argparse.ArgumentParser(description=HELP)
+    add_arguments(p)
+    args = p.parse_args(argv)
+    results = run(args)
+    print(summary_table(results))
+    print(json.dumps(results, indent=1)[:2000])
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

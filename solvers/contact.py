@@ -1,0 +1,56 @@
+"""The ground contact law every solver honours (one definition; kernels in :mod:`.contact_kernels`).
+
+The ground is the plane z = h of the scenario.  Where the solid's surface lies a depth d > 0 below it,
+the ground pushes the surface back along +z with the normal traction (force per unit area)::
+
+    p = k_g d + c_g ḋ        (p >= 0: the ground never pulls)
+
+and, with ``ground_friction`` μ, resists sliding with a tangential traction of at most μ p (Coulomb, sticking
+below it).  The base model's ground is **rigid and frictionless** (k_g = ∞, c_g = 0, μ = 0): the solid cannot
+pass through it and a contact takes no energy.  The ``contact_damping`` effect makes it a damped floor that
+gives (finite k_g [Pa/m], c_g [Pa·s/m]).  Being per unit area, the law does not depend on how finely a solver
+resolves the solid.
+
+**Why the damper needs the floor to give.**  On a rigid floor the contact surface does not move normal to
+the ground while it is pressed (ḋ = 0), so the contact does no work: for an elastic solid every joule of
+the impact comes back, partly as rebound and partly as vibration.  Energy can leave an elastic solid at a
+contact only through a floor that gives (k_g finite) and damps (c_g > 0), through friction, or in the
+solid's own material (``material_damping``, ``plasticity``).  A solver that loses energy at a rigid
+contact shows a discretisation artefact, not physics: docs/contact.md measures each solver's and bounds it.
+
+**How the solvers realise the rigid limit.**  Each contact sample (an MPM particle's lower face, a
+spring-mass anchor's cell, an LBS collision point) of mass m, contact area A and size ℓ (the spacing of the
+solver's samples) feels the normal spring k = min(k_g A, k_r) and the damper c = min(c_g A, m / Δt), where
+k_r = β² M A / ℓ (β = :data:`RIGID_CONTACT_BETA`, M = λ + 2μ the P-wave modulus of the touching material) is
+a floor as stiff as a layer of the solid's own material ℓ/β² thick: its contact frequency β c_p / ℓ is one
+the solver's resolution represents (a stiffer contact excites motion finer than the solver resolves, whose
+energy the solver then loses: measured in docs/contact.md), and the explicit solvers cap it at ω Δt ≤ 1
+(symplectic Euler, stable and lossless).  With ``material_damping`` η the layer also carries the
+material's Kelvin–Voigt viscosity: the damper 2η k_r / M (the layer's relaxation time 2η/M times its
+spring), scaled by k / k_r; without it a reduced model (LBS), whose handles cannot compress the solid
+locally, would store an impact's energy in an undamped contact spring and bounce back higher than the
+damped continuum.  As the resolution grows (ℓ → 0) the contact converges to the rigid floor; a sample hitting the floor at speed v sinks about v ℓ / (β c_p) into it (a millimetre or less at the
+default resolutions and impact speeds below ~2 m/s), and tracked points and baked vertices are put back on the
+plane (:func:`clamp_to_ground`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+RIGID_CONTACT_BETA = 0.55
+"""β of the rigid floor's contact frequency β c_p / ℓ (module docstring; measured in docs/contact.md)."""
+
+MAX_CONTACT_RATE = 1.0
+"""Largest ω Δt of a contact spring in the explicit solvers (symplectic Euler is stable below 2)."""
+
+PENETRATION_TOLERANCE = 1.0e-3
+"""m: no tracked point or baked vertex may end up further below the ground plane than this (tested)."""
+
+
+def clamp_to_ground(positions: np.ndarray, ground_height: float | None) -> np.ndarray:
+    """Positions (..., 3) m with every z below the ground plane put on it (a copy; unchanged without ground)."""
+    pos = np.array(positions, copy=True)
+    if ground_height is not None:
+        np.maximum(pos[..., 2], ground_height, out=pos[..., 2])
+    return pos
