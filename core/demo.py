@@ -529,7 +529,9 @@ def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, say) -> dic
                                        plan.mpm_cells)
     say(f"         {obj.name}: wave speed up to {c:.0f} m/s → MPM grid of {cells} cells across "
         f"(~{cost:.2g} particle-substeps)")
-    return {"cells_across": cells}
+    # dx given: the solver's own automatic grid would refine the thinnest parts (leaves: 4 cells across their
+    # thickness), some 10³ times the particles of this budget on a CPU; the demo keeps the grid its budget affords
+    return {"cells_across": cells, "dx": bo.size / cells}
 
 
 def _max_displacement(obj, frames: int) -> float:
