@@ -81,6 +81,11 @@ MATERIAL_SOURCE_LABELS = {
     "field": ("Field file", "A per-voxel material field (.npz, unipixie.material_field/1) in the object's normalised cube"),
     "model": ("Model at α", "The UniPixie model's prediction at the object's α"),
 }
+MATERIAL_RULE = ("a bake's material comes from exactly one source: the model at α (--alpha, with --features, "
+                 "--checkpoint, --seed; manifest 'alpha' with material \"model\"), a material field file "
+                 "(--material-file) or one homogeneous material (--E, --nu, --density, --material-class); a field or "
+                 "homogeneous material has no α")
+"""The rule the command line and manifests state when material options of several sources are mixed."""
 DEFAULT_HOMOGENEOUS = {"E": 1.0e5, "nu": 0.3, "density": 1000.0, "material": "jelly"}
 """The panel's default homogeneous material (a soft jelly: E 100 kPa, ν 0.3, 1000 kg/m³)."""
 
@@ -430,8 +435,9 @@ class ModelSource(MaterialSource):
         if not _PREDICTORS:
             raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model and the object's feature "
                             "grid, and neither a feature grid (--features GRID.npz from 'unipixie features') nor a "
-                            "prediction of the object is available; bake with a homogeneous material "
-                            "(--E/--nu/--density/--material-class) or a material field file (--material-file) instead")
+                            "prediction of the object is available ('unipixie bake --alpha' computes them unless "
+                            "--no-auto); bake with a homogeneous material (--E/--nu/--density/--material-class) or a "
+                            "material field file (--material-file) instead")
         resolved = _PREDICTORS[-1](obj, alpha, solver)
         if not isinstance(resolved, ResolvedMaterial):
             raise TypeError(f"material predictor returned {type(resolved).__name__}, expected ResolvedMaterial")
@@ -1421,8 +1427,11 @@ def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None
             alphas = [None if a is None else float(a) for a in alphas]
         except (TypeError, ValueError):
             raise UserError(f"{where}: 'alpha' must be a number in [0, 1] or a list of them") from None
+        source = material_source_from_dict(material) if "material" in d else None
+        if any(a is not None for a in alphas) and source is not None and source.kind != "model":
+            raise UserError(f"{where}: 'alpha' with a {source.kind} 'material': {MATERIAL_RULE}")
         common = dict(effects=list(d.get("effects", []) or []), device=str(d.get("device", "cpu")),
-                      material=material_source_from_dict(material) if "material" in d else None,
+                      material=source,
                       output=str(d.get("output", "auto")), interpolation=str(d.get("interpolation", "LINEAR")),
                       particles=bool(d.get("particles", False)),
                       armature_tolerance=float(d.get("armature_tolerance", ARMATURE_TOLERANCE)),

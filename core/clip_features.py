@@ -6,7 +6,9 @@ with ``output_tokens = True``):
 * **CLIP** — a pretrained OpenCLIP ViT (default ``ViT-B-16``, D = 768) whose
   weights come from a local file or directory: ``--clip-weights`` /
   the add-on preference / ``$UNIPIXIE_CLIP_WEIGHTS`` / ``<cache>/clip/ViT-B-16/``.
-  Nothing is downloaded.
+  Extraction downloads nothing; ``unipixie weights fetch`` (and the add-on's
+  *Fetch CLIP weights*) put the weights :data:`OPENCLIP_PRETRAINED` names into
+  that default folder (:mod:`unipixie.core.weights`).
 * **offline** — a *seeded, untrained* small ViT (:data:`OFFLINE_VISION_CFG`,
   width 32 → D = 32) built through the same OpenCLIP factory.  Its name,
   :data:`OFFLINE_FEATURE_MODEL` (``"offline-random-vit-w32"``), says what it is
@@ -34,6 +36,11 @@ from .errors import UserError
 CLIP_MODEL = "ViT-B-16"
 """The default OpenCLIP architecture (paper: D = 768)."""
 
+OPENCLIP_PRETRAINED = {CLIP_MODEL: "laion2b_s34b_b88k"}
+"""Which OpenCLIP pretrained weights (open_clip's tag) a CLIP feature model means: the architecture name is the
+feature-model name recorded in feature grids and checkpoints; the tag picks the weights ``unipixie weights fetch``
+downloads (ViT-B-16 trained on LAION-2B, the weights the paper's feature extractor uses)."""
+
 CLIP_WEIGHTS_ENV = "UNIPIXIE_CLIP_WEIGHTS"
 """Environment variable naming the local CLIP weights (file or directory)."""
 
@@ -58,9 +65,12 @@ def default_weights_dir(model: str = CLIP_MODEL) -> Path:
 
 
 def _missing_weights_message(model: str, where: str) -> str:
-    return (f"CLIP weights for {model} not found{where}. Put an OpenCLIP {model} checkpoint (for example "
-            f"'open_clip_pytorch_model.bin' of {model} laion2b_s34b_b88k, or an open_clip 'local-dir' folder with "
-            f"open_clip_config.json) in {default_weights_dir(model)}, or pass --clip-weights PATH, set "
+    tag = OPENCLIP_PRETRAINED.get(model, "")
+    put = (f"an OpenCLIP {model} checkpoint (for example 'open_clip_pytorch_model.bin' of {model} {tag}, or an "
+           f"open_clip 'local-dir' folder with open_clip_config.json) in {default_weights_dir(model)}")
+    fetch = (f"Fetch them with 'unipixie weights fetch' (online: OpenCLIP {model} {tag} from the Hugging Face Hub), "
+             f"put {put}" if tag else f"Put {put}")
+    return (f"CLIP weights for {model} not found{where}. {fetch}, or pass --clip-weights PATH, set "
             f"${CLIP_WEIGHTS_ENV}, or set 'CLIP weights' in the add-on preferences; or use the offline extractor "
             f"(--offline-features: an untrained {OFFLINE_FEATURE_MODEL}, not CLIP)")
 
@@ -81,7 +91,7 @@ def resolve_clip_weights(explicit: Optional[str | os.PathLike] = None, model: st
             raise UserError(_missing_weights_message(model, f" at {p} (from ${CLIP_WEIGHTS_ENV})"))
         return p
     d = default_weights_dir(model)
-    if d.is_dir() and any(d.iterdir()):
+    if d.is_dir() and any(not p.name.startswith(".") for p in d.iterdir()):   # .cache/: a download's bookkeeping
         return d
     raise UserError(_missing_weights_message(model, ""))
 
@@ -95,8 +105,10 @@ def _checkpoint_in_dir(d: Path) -> Optional[Path]:
 
 
 def weights_identity(path: Path) -> dict:
-    """A cheap identity of a weights file or folder for cache keys: names, sizes and modification times."""
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    """A cheap identity of a weights file or folder for cache keys: names, sizes and modification times (hidden
+    entries such as the download bookkeeping in ``.cache/`` do not count)."""
+    files = [path] if path.is_file() else sorted(
+        p for p in path.rglob("*") if p.is_file() and not any(part.startswith(".") for part in p.relative_to(path).parts))
     return {"path": str(path.resolve()),
             "files": [(p.name, p.stat().st_size, int(p.stat().st_mtime)) for p in files]}
 

@@ -7,12 +7,16 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
    scene as one closed mesh (parts united), with a ground plane, a camera and labels.
 2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
    extracts the **offline** features (``offline-random-vit-w32``: an untrained ViT, not CLIP — what the
-   shipped model is trained on), and predicts the α sweep with the model (default: the shipped
-   ``models/default``).  Copies of the objects share the prediction (their pipeline record is copied;
-   the fingerprint ignores placement).
+   shipped model is trained on), and predicts the material with the model (default: the shipped
+   ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1; duck: 0.5), one batched
+   pass per object — not the panel's 11-value α sweep, which is most of the model's time on a CPU (the
+   panel's *Predict* makes it later for the α slider).  Copies of the objects share the prediction
+   (their pipeline record is copied; the fingerprint ignores placement).  Meanwhile a worker thread
+   compiles the solvers' Warp kernels (a fresh machine's kernel cache is empty).
 3. Bakes the plant with **MPM at α = 0, 0.5 and 1** and with the **spring-mass** solver at α = 0.5
    (four copies side by side; each pot is clamped and the rest pushed sideways), and the duck, dropped
-   on the ground, with **LBS** at α = 0.5.  The MPM grid of each bake is sized to a compute budget from
+   on the ground, with **LBS** at α = 0.5 — on the CPU as many bakes at once as there are cores (Warp runs
+   each simulation's CPU kernels on one core).  The MPM grid of each bake is sized to a compute budget from
    the predicted stiffness (the time step shrinks with the wave speed), so the demo's run time stays
    bounded whatever the model predicts; a spring-mass bake whose predicted springs would need more than
    :data:`SPRING_SUBSTEP_LIMIT` substeps per frame stops with a message instead.
@@ -20,7 +24,7 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
    contact sheet of frames, a picture of the plant's material field per α, and ``summary.json`` with
    how far every baked object moved and how different the α = 0 and α = 1 bakes are.
 
-``--quick`` is the same with fewer views, a 3-value sweep, fewer frames and coarser solvers (CI).
+``--quick`` is the same with fewer views, fewer frames and coarser solvers (CI).
 """
 
 from __future__ import annotations
@@ -57,8 +61,7 @@ DUCK = DemoObject("rubber_duck", 0, 0, "Rubber duck")
 class DemoPlan:
     """How much work the demo does.
 
-    views / resolution: rendered views per object and their size (px).  sweep_count: α values of the
-    sweep (``None``: the model's default, 11).  frames / fps: the baked clip.  mpm_budget: particle ×
+    views / resolution: rendered views per object and their size (px).  frames / fps: the baked clip.  mpm_budget: particle ×
     substep updates allowed per MPM bake (sets its grid, within ``mpm_cells`` cells across the object).
     lbs_settings / spring_settings: solver settings.  sheet_frames / sheet_size: the contact sheet.
     plant_alphas: the plant's MPM bakes; spring_alpha: the plant's spring-mass bake; lbs_alpha: the
@@ -69,7 +72,6 @@ class DemoPlan:
     name: str
     views: int
     resolution: int
-    sweep_count: Optional[int]
     frames: int
     fps: int
     mpm_budget: float
@@ -90,15 +92,17 @@ SPRING_SUBSTEP_LIMIT = 20_000
 frame than this (at the model's 256 anchors, 20 000 × 48 frames is about 2–3 minutes on 2 CPU cores), instead
 of running for an hour."""
 
-FULL = DemoPlan("full", views=24, resolution=224, sweep_count=None, frames=48, fps=24, mpm_budget=1.2e8,
+FULL = DemoPlan("full", views=24, resolution=224, frames=48, fps=24, mpm_budget=1.2e8,
                 mpm_cells=(10, 32), lbs_settings={},
                 spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=6,
                 sheet_size=(720, 360))
-QUICK = DemoPlan("quick", views=6, resolution=224, sweep_count=3, frames=12, fps=24, mpm_budget=1.2e7,
+QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget=1.2e7,
                  mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
                  spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
                  sheet_size=(480, 240))
 SOLVER_LABELS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "spring-mass"}
+BAKE_ORDER = ("mpm", "lbs", "spring_mass")
+"""The demo's bakes start in this order, the longest first (they run side by side on the CPU cores)."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -261,9 +265,11 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     bakes and the pictures are still made.
     """
     from ..training import procedural
+    from .bake import MODEL_HEADS
     from .blender_io import demo_scene as ds
     from .blender_io import pipeline as pio
     from .blender_io.bake import registered_properties
+    from .features import run_side_by_side
     from .pipeline import PipelineSettings
 
     plan = QUICK if quick else FULL
@@ -277,7 +283,8 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     stages = _Stages(progress, say, {"objects": 2, "features": 8 if quick else 14, "predict": 10 if quick else 30,
                                      "bake": 20 if quick else 45, "pictures": 3})
     settings = PipelineSettings(view_count=plan.views, resolution=plan.resolution, checkpoint=str(ckpt),
-                                sweep_count=plan.sweep_count, device=device).with_model_recipe()
+                                device=device).with_model_recipe()
+    warm_up = KernelWarmUp(device).start()
 
     with registered_properties():
         pio.ensure_model_material()
@@ -333,42 +340,52 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
                 f"({'from the cache' if result.cache_hit else f'{sum(result.timings.values()):.1f} s'})")
         stages.done()
 
-        # 3. predict the α sweeps -----------------------------------------------------------------
-        count = settings.resolved_sweep_count()
-        p = stages.sub("predict", f"predicting the α sweep ({count} values of α in one batched pass per object)")
-        heads = {plants[0].name: ("mpm", "spring_mass"), duck.name: ("mpm", "lbs")}
+        # 3. predict at the α values the demo bakes ------------------------------------------------------
+        jobs = [(o, solver, a) for o, (solver, a) in zip(plants, bakes_todo)] + [(duck, "lbs", plan.lbs_alpha)]
+        p = stages.sub("predict", "predicting the material at the α values the demo bakes (one batched pass per "
+                                  "object)")
         for src in (plants[0], duck):
-            s = PipelineSettings(**{**settings.to_dict(), "heads": heads[src.name]})
+            mine = [(solver, a) for o, solver, a in jobs if o is src or (src is plants[0] and o in plants)]
+            heads = tuple(h for h in ("mpm", "lbs", "spring_mass") if any(h in MODEL_HEADS[sv] for sv, _ in mine))
+            s = PipelineSettings(**{**settings.to_dict(), "heads": heads, "alphas": tuple(a for _, a in mine)})
             t = time.perf_counter()
             pio.run_to_end(pio.predict_step(src, s), p.sub(0.5, 1.0, src.name))
-            say(f"         {src.name}: heads {', '.join(heads[src.name])} in {time.perf_counter() - t:.1f} s")
+            say(f"         {src.name}: α {', '.join(f'{a:g}' for a in s.alphas)}, heads {', '.join(heads)} in "
+                f"{time.perf_counter() - t:.1f} s")
         for obj in plants[1:]:
             pio.copy_pipeline(plants[0], obj)      # copies share the prediction (placement-invariant fingerprint)
         stages.done()
 
         # 4. bakes ----------------------------------------------------------------------------------
-        jobs = [(o, solver, a) for o, (solver, a) in zip(plants, bakes_todo)] + [(duck, "lbs", plan.lbs_alpha)]
-        p = stages.sub("bake", f"baking {len(jobs)} objects ({plan.frames} frames at {plan.fps} fps)")
-        bakes, failed = [], []
+        workers = bake_workers(device, len(jobs))
+        p = stages.sub("bake", f"baking {len(jobs)} objects ({plan.frames} frames at {plan.fps} fps"
+                               + (f", {workers} at a time" if workers > 1 else "") + ")")
+        planned = []
         for obj, solver, alpha in jobs:
             pio.sync_plan(obj, settings)
-            solver_settings = _solver_settings(obj, solver, alpha, plan, say)
-            try:
-                rep = pio.run_to_end(pio.bake_step(obj, settings, solver_settings=solver_settings),
-                                     p.sub(1.0 / len(jobs), 1.0, obj.name))
-            except UserError as exc:
-                from .errors import CancelledError
+            planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, say)))
+        planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first: MPM, LBS, spring-mass
+        bakes, failed = [], []
 
-                if isinstance(exc, CancelledError):
-                    raise
-                failed.append({"object": obj.name, "solver": solver, "alpha": alpha, "error": str(exc)})
-                say(f"         {obj.name}: {solver} bake FAILED: {exc}")
-                continue
+        def bake_done(index, rep):
+            obj, solver, alpha, solver_settings = planned[index]
+            if isinstance(rep, Exception):
+                if not isinstance(rep, UserError):
+                    raise rep
+                failed.append({"object": obj.name, "solver": solver, "alpha": alpha, "error": str(rep)})
+                say(f"         {obj.name}: {solver} bake FAILED: {rep}")
+                return
             moved = _max_displacement(obj, plan.frames)
             bakes.append(BakeSummary(obj.name, solver, alpha, rep.material, rep.mode, round(rep.simulate_seconds, 2),
                                      moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}))
             say(f"         {obj.name}: {rep.mode.replace('_', ' ')}, simulated in {rep.simulate_seconds:.1f} s, "
                 f"moved up to {100 * moved:.1f} cm")
+
+        run_side_by_side(
+            [(lambda o=obj, sv=solver, ss=sset: warm_up.ready(sv, pio.bake_step(o, settings, solver_settings=ss)),
+              p.sub(1.0 / len(jobs), 1.0, obj.name)) for obj, solver, _, sset in planned], max_running=workers,
+            on_done=bake_done)
+        say(f"         {warm_up.report()}")
         bpy_save(blend)
         stages.done()
 
@@ -407,6 +424,80 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     return result
 
 
+def bake_workers(device: str, jobs: int) -> int:
+    """How many demo bakes run at once: one per CPU core this process may use on the CPU (Warp runs each
+    simulation's CPU kernels on one core), one at a time on a GPU."""
+    import os
+
+    if str(device).startswith("cuda"):
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(int(jobs), cores))
+
+
+class KernelWarmUp:
+    """Compile the solvers' Warp kernels in a worker thread while the demo builds, renders and predicts (an empty
+    kernel cache costs about 40 s of compiling on a 2-core CPU, otherwise paid inside the first bake of each
+    solver).  It runs a two-frame simulation of a small sphere with each solver through the public solver API, so
+    exactly the kernels a bake launches get compiled; :meth:`ready` holds a bake back until its solver's kernels
+    are done.  A failure here is ignored (the bake compiles then)."""
+
+    SOLVERS = ("mpm", "lbs", "spring_mass")
+    """In the order of the demo's bakes (:data:`BAKE_ORDER`)."""
+
+    def __init__(self, device: str = "cpu"):
+        import threading
+
+        self.device = device
+        self.seconds: dict = {}
+        self.error = ""
+        self._done = {s: threading.Event() for s in self.SOLVERS}
+        self._thread = threading.Thread(target=self._main, name="unipixie-warp-warm-up", daemon=True)
+
+    def start(self) -> "KernelWarmUp":
+        self._thread.start()
+        return self
+
+    def _main(self):
+        try:
+            import trimesh
+
+            from ..solvers import api
+            from ..solvers.body import Body
+            from ..solvers.material_sampling import HomogeneousMaterial
+            from ..solvers.scenario import Scenario
+
+            mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+            mesh.apply_translation([0.0, 0.0, 0.1])
+            body = Body.from_mesh(mesh)
+            for solver in self.SOLVERS:
+                t0 = time.perf_counter()
+                api.simulate(solver, body, HomogeneousMaterial(E=1e5, nu=0.3, density=1000.0, material="jelly"),
+                             Scenario(ground_height=0.0), np.linspace(0.0, 1.0 / 24.0, 2), [], device=self.device)
+                self.seconds[solver] = time.perf_counter() - t0
+                self._done[solver].set()
+        except Exception as exc:          # noqa: BLE001 - only a head start; the bakes compile what is missing
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            for event in self._done.values():
+                event.set()
+
+    def ready(self, solver: str, job):
+        """``job`` (a bake's job generator) once ``solver``'s kernels are compiled; yields while waiting."""
+        event = self._done.get(solver)
+        while event is not None and not event.wait(0.05):
+            yield 0.0, f"waiting for the {SOLVER_LABELS.get(solver, solver)} kernels to compile"
+        return (yield from job)
+
+    def report(self) -> str:
+        done = ", ".join(f"{SOLVER_LABELS.get(k, k)} {v:.0f} s" for k, v in self.seconds.items())
+        return (f"Warp kernels compiled in the background ({done})" if done else "Warp kernels: no warm-up") + (
+            f"; warm-up failed ({self.error}), the bakes compile" if self.error else "")
+
+
 def bpy_save(path: Path) -> None:
     from .blender_io.demo_scene import save
 
@@ -440,7 +531,9 @@ def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, say) -> dic
                                        plan.mpm_cells)
     say(f"         {obj.name}: wave speed up to {c:.0f} m/s → MPM grid of {cells} cells across "
         f"(~{cost:.2g} particle-substeps)")
-    return {"cells_across": cells}
+    # dx given: the solver's own automatic grid would refine the thinnest parts (leaves: 4 cells across their
+    # thickness), some 10³ times the particles of this budget on a CPU; the demo keeps the grid its budget affords
+    return {"cells_across": cells, "dx": bo.size / cells}
 
 
 def _max_displacement(obj, frames: int) -> float:

@@ -31,6 +31,7 @@ from typing import Generator, Optional
 
 import numpy as np
 
+from .clip_features import CLIP_MODEL
 from .errors import UserError
 from .normalise import Normalisation, unit_cube_grid
 from .types import FeatureGrid, Views
@@ -64,6 +65,50 @@ def run_job(job, progress=None):
         job.close()
 
 
+def run_side_by_side(jobs, max_running: int = 2, on_done=None) -> list:
+    """Drive several job generators at once, at most ``max_running`` of them started at a time, and return their
+    results in order (an exception a job raised takes the place of its result; the others go on).
+
+    jobs: ``[(make_job, progress)]`` — ``make_job()`` creates the generator when a place is free; ``progress`` (or
+    ``None``) follows its fraction.  Jobs whose heavy work runs in a worker thread (a bake's simulation: Warp's CPU
+    kernels use one core each) then share the CPU cores, while their Blender parts (reading, writing) stay in this
+    thread.  A :class:`~.errors.CancelledError` (a progress cancelled, Ctrl-C) closes every started job and is
+    raised.  ``on_done(index, result)`` is called as each job ends (in this thread).
+    """
+    from .errors import CancelledError
+
+    pending = list(enumerate(jobs))
+    running: dict = {}
+    results: list = [None] * len(jobs)
+    try:
+        while pending or running:
+            while pending and len(running) < max(1, int(max_running)):
+                i, (make, progress) = pending.pop(0)
+                running[i] = (make(), progress)
+            for i in list(running):
+                gen, progress = running[i]
+                try:
+                    fraction, status = next(gen)
+                except StopIteration as stop:
+                    results[i] = stop.value
+                except CancelledError:
+                    raise
+                except Exception as exc:        # noqa: BLE001 - handed to the caller as this job's result
+                    results[i] = exc
+                    gen.close()
+                else:
+                    if progress is not None:
+                        progress.step(max(0.0, float(fraction) * progress.total - progress.done), status)
+                    continue
+                del running[i]
+                if on_done is not None:
+                    on_done(i, results[i])
+    finally:
+        for gen, _ in running.values():
+            gen.close()
+    return results
+
+
 def rescaled(job, start: float, span: float):
     """A job whose fractions ``f`` are reported as ``start + span * f`` (for use with ``yield from``);
     closing it closes ``job``."""
@@ -85,6 +130,7 @@ class FeatureOptions:
     view_count, resolution, engine, samples, render_device: see :class:`.blender_io.render.RenderSettings`.
     offline: use the untrained offline ViT (``offline-random-vit-w32``, not CLIP) instead of CLIP.
     clip_weights: local CLIP weights (file or folder); ``None``: ``$UNIPIXIE_CLIP_WEIGHTS`` or the default folder.
+    clip_model: the OpenCLIP architecture of the CLIP weights (default ViT-B-16, the paper's).
     device: torch device for features and lifting (``"cpu"``, ``"cuda"``, ``"auto"``).
     use_cache: read and write the caches.
     """
@@ -96,6 +142,7 @@ class FeatureOptions:
     render_device: str = "auto"
     offline: bool = False
     clip_weights: Optional[str] = None
+    clip_model: str = CLIP_MODEL
     device: str = "cpu"
     use_cache: bool = True
 
@@ -170,7 +217,8 @@ def extractor_identity(options: FeatureOptions) -> dict:
 
     if options.offline:
         return cf.offline_identity()
-    return {"model": cf.CLIP_MODEL, "weights": cf.weights_identity(cf.resolve_clip_weights(options.clip_weights))}
+    return {"model": options.clip_model,
+            "weights": cf.weights_identity(cf.resolve_clip_weights(options.clip_weights, model=options.clip_model))}
 
 
 def views_cache_path(fingerprint: str, settings) -> Path:
@@ -245,7 +293,8 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
     yield 0.02, "loading the feature model"
     if extractor is None:
         t = time.perf_counter()
-        extractor = cf.make_extractor(offline=options.offline, clip_weights=options.clip_weights, device=options.device)
+        extractor = cf.make_extractor(offline=options.offline, clip_weights=options.clip_weights, device=options.device,
+                                      model=options.clip_model)
         timings["load_model"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -66,6 +66,7 @@ CHANGE_REASONS = {
     "grid": "the features changed",
     "checkpoint": "the model checkpoint changed",
     "count": "the number of α values of the sweep changed",
+    "alphas": "the α values of the prediction changed",
     "seed": "the seed changed",
     "steps": "the number of inference steps changed",
     "precision": "the device changed (the model runs in bf16 on CUDA)",
@@ -203,6 +204,32 @@ def checkpoint_feature_model(checkpoint_dir: Path) -> tuple[str, int]:
         raise UserError(f"{path}: not a readable model config ({exc})") from None
 
 
+_FEATURE_MODELS: dict = {}
+
+
+def model_feature_model(checkpoint_dir) -> str:
+    """The feature model (extractor) a checkpoint expects: its ``feature_recipe.json``'s ``extractor`` when the
+    recipe names one, else its config's ``feature_model`` (they must agree).  Memoised on the files' mtimes."""
+    from .model.checkpoint import CONFIG_FILE, RECIPE_FILE, read_feature_recipe
+
+    d = Path(checkpoint_dir).resolve()
+    stamp = tuple(f.stat().st_mtime_ns if f.is_file() else 0 for f in (d / CONFIG_FILE, d / RECIPE_FILE))
+    with _CKPT_LOCK:
+        hit = _FEATURE_MODELS.get(str(d))
+        if hit is not None and hit[0] == stamp:
+            return hit[1]
+    trained_on, _ = checkpoint_feature_model(d)
+    recipe = read_feature_recipe(d) or {}
+    named = recipe.get("extractor")
+    if named and named != trained_on:
+        raise UserError(f"{d / RECIPE_FILE} names the extractor {named!r} but {d / CONFIG_FILE} says the model was "
+                        f"trained on {trained_on!r} features; the checkpoint is inconsistent (retrain or fix the recipe)")
+    name = named or trained_on
+    with _CKPT_LOCK:
+        _FEATURE_MODELS[str(d)] = (stamp, name)
+    return name
+
+
 def feature_model_name(clip_weights: str = "") -> str:
     """The feature model the pipeline extracts with: CLIP ViT-B-16 when CLIP weights are set, else the
     offline extractor (``offline-random-vit-w32``, an untrained ViT: not CLIP)."""
@@ -272,9 +299,14 @@ class PipelineSettings:
     """How the steps run.
 
     view_count / resolution / engine / samples / render_device: the views (see ``core.features``).
-    clip_weights: local CLIP ViT-B-16 weights; empty: the offline extractor (not CLIP).
+    clip_weights: local OpenCLIP weights (file or folder) for a model trained on CLIP features; empty:
+        ``$UNIPIXIE_CLIP_WEIGHTS`` or the default weights folder (``unipixie weights fetch`` fills it).
     checkpoint: the model (directory or its model.safetensors); empty: the shipped ``models/default``.
+    The feature model Features extracts with is the one the checkpoint was trained on
+    (:meth:`resolved_extractor`).
     sweep_count: α values of the Predict sweep (``None``: the model's default, 11).
+    alphas: predict at exactly these α values instead of the sweep (what bakes at those α need: the
+        command line's and the demo's prediction); ``None``: the sweep.
     seed: the model's noise seed.  steps: Heun steps (``None``: the model's default, 15).
     heads: model heads Predict runs.  device: ``cpu`` / ``cuda`` (model, features, solvers).
     """
@@ -291,6 +323,7 @@ class PipelineSettings:
     steps: Optional[int] = None
     heads: tuple = DEFAULT_HEADS
     device: str = "cpu"
+    alphas: Optional[tuple] = None
 
     def __post_init__(self):
         from .model.config import HEADS
@@ -306,12 +339,36 @@ class PipelineSettings:
             raise UserError(f"an α sweep needs at least 2 values, got {self.sweep_count}")
         self.clip_weights = str(self.clip_weights or "")
         self.checkpoint = str(self.checkpoint or "")
+        if self.alphas is not None:
+            try:
+                values = sorted({round(float(a), 6) for a in self.alphas})
+            except (TypeError, ValueError):
+                raise UserError(f"α values must be numbers in [0, 1], got {self.alphas!r}") from None
+            if not values or not all(0.0 <= a <= 1.0 for a in values):
+                raise UserError(f"α values must be numbers in [0, 1], got {self.alphas!r}")
+            self.alphas = tuple(values)
 
     # -- the steps' options ----------------------------------------------------------------
+    def resolved_extractor(self) -> str:
+        """The feature model Features extracts with: the one the checkpoint was trained on (its
+        ``feature_recipe.json``'s ``extractor``, else its config's ``feature_model``), so the model always sees
+        the features it was trained on.  Without an installed checkpoint: CLIP ViT-B-16 when CLIP weights are
+        set, else the offline extractor (``offline-random-vit-w32``, not CLIP)."""
+        try:
+            ckpt = resolve_checkpoint(self.checkpoint)
+        except UserError:
+            return feature_model_name(self.clip_weights)
+        return model_feature_model(ckpt)
+
     def feature_options(self) -> FeatureOptions:
+        from . import clip_features as cf
+
+        extractor = self.resolved_extractor()
+        offline = extractor == cf.OFFLINE_FEATURE_MODEL
         return FeatureOptions(view_count=self.view_count, resolution=self.resolution, engine=self.engine,
-                              samples=self.samples, render_device=self.render_device, offline=not self.clip_weights,
-                              clip_weights=self.clip_weights or None, device=self.device)
+                              samples=self.samples, render_device=self.render_device, offline=offline,
+                              clip_weights=self.clip_weights or None, clip_model=cf.CLIP_MODEL if offline else extractor,
+                              device=self.device)
 
     def resolved_sweep_count(self) -> int:
         from .model.inference import DEFAULT_SWEEP_COUNT
@@ -322,6 +379,14 @@ class PipelineSettings:
         from .model.inference import DEFAULT_STEPS
 
         return int(self.steps or DEFAULT_STEPS)
+
+    def resolved_alphas(self) -> np.ndarray:
+        """(A,) float64 ascending: the α values Predict runs at (``alphas``, else the evenly spaced sweep)."""
+        from .model.sweep import sweep_alphas
+
+        if self.alphas is not None:
+            return np.asarray(self.alphas, dtype=np.float64)
+        return sweep_alphas(self.resolved_sweep_count())
 
     # -- the inputs each step depends on (recorded, compared for staleness) ------------------------
     def render_inputs(self, fingerprint: str) -> dict:
@@ -337,9 +402,13 @@ class PipelineSettings:
         """What a sweep depends on.  The heads are not part of it: a sweep without a solver's head is not
         wrong, a bake with that solver predicts the head exactly at its α (:func:`exact_prediction`)."""
         ckpt = resolve_checkpoint(self.checkpoint)
-        return {"grid": Path(grid_path).name, "checkpoint": checkpoint_identity(ckpt),
-                "count": self.resolved_sweep_count(), "seed": int(self.seed), "steps": self.resolved_steps(),
-                "precision": precision_of(self.device)}
+        inputs = {"grid": Path(grid_path).name, "checkpoint": checkpoint_identity(ckpt)}
+        if self.alphas is None:
+            inputs["count"] = self.resolved_sweep_count()
+        else:
+            inputs["alphas"] = list(self.alphas)
+        inputs.update({"seed": int(self.seed), "steps": self.resolved_steps(), "precision": precision_of(self.device)})
+        return inputs
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -380,13 +449,24 @@ def check_settings(checkpoint: str = "", clip_weights: str = "", cache_dir: str 
         except UserError as exc:
             problems.append(f"Model checkpoint: {exc}")
         else:
-            extracting = feature_model_name(clip_weights)
-            if trained_on != extracting:
-                fix = ("set 'CLIP weights' to local ViT-B-16 weights" if trained_on == cf.CLIP_MODEL else
-                       "clear 'CLIP weights' to use the offline extractor" if trained_on == cf.OFFLINE_FEATURE_MODEL
-                       else "choose a checkpoint trained on the features the add-on extracts")
-                problems.append(f"Model checkpoint: it was trained on {trained_on!r} features (D = {width}) but the "
-                                f"add-on extracts {extracting!r} features; {fix}")
+            try:
+                extracting = model_feature_model(ckpt)    # Features extracts what the model was trained on
+            except UserError as exc:
+                problems.append(f"Model checkpoint: {exc}")
+                extracting = trained_on
+            if extracting == cf.OFFLINE_FEATURE_MODEL:
+                if clip_weights:
+                    problems.append(f"Model checkpoint: it was trained on {trained_on!r} features (D = {width}), which "
+                                    "need no CLIP weights, so the 'CLIP weights' set are not used; clear 'CLIP weights' "
+                                    "(or choose a checkpoint trained on CLIP features)")
+            elif not clip_weights:
+                try:
+                    cf.resolve_clip_weights(None, model=extracting)
+                except UserError:
+                    problems.append(f"CLIP weights: the model was trained on {extracting!r} features (D = {width}) and "
+                                    f"no {extracting} weights were found in {cf.default_weights_dir(extracting)}; "
+                                    "fetch them ('Fetch CLIP weights' below, or 'unipixie weights fetch') or set "
+                                    "'CLIP weights' to a local copy")
     if clip_weights:
         try:
             cf.resolve_clip_weights(clip_weights)
@@ -409,6 +489,28 @@ def check_settings(checkpoint: str = "", clip_weights: str = "", cache_dir: str 
                         f"are copied from the nearest seen voxel); use at least {MIN_USEFUL_VIEWS} "
                         f"({DEFAULT_VIEW_COUNT} recommended)")
     return problems
+
+
+def extractor_summary(checkpoint: str = "", clip_weights: str = "") -> tuple[str, str]:
+    """What the Features step extracts for a model, for the panel: ``(text, fetch)`` where ``text`` says which
+    extractor the model expects and whether its weights are there, and ``fetch`` is the CLIP feature model whose
+    weights are missing and can be fetched (``""`` when nothing is to fetch)."""
+    from . import clip_features as cf
+
+    try:
+        ckpt = resolve_checkpoint(checkpoint)
+        name = model_feature_model(ckpt)
+        _, width = checkpoint_feature_model(ckpt)
+    except UserError as exc:
+        return f"model: {exc}", ""
+    if name == cf.OFFLINE_FEATURE_MODEL:
+        return f"{ckpt.name} expects {name} features (D = {width}): the offline ViT, no weights needed, not CLIP", ""
+    try:
+        where = cf.resolve_clip_weights(clip_weights or None, model=name)
+    except UserError:
+        fetch = name if (not clip_weights and name in cf.OPENCLIP_PRETRAINED) else ""
+        return f"{ckpt.name} expects {name} CLIP features (D = {width}); weights missing", fetch
+    return f"{ckpt.name} expects {name} CLIP features (D = {width}); weights: {where}", ""
 
 
 MIN_USEFUL_VIEWS = 8
@@ -498,11 +600,23 @@ def step_states(record: PipelineRecord, current: CurrentInputs) -> dict:
         out["predict"] = StepState(STALE, "the features are " + out["features"].state)
     else:
         try:
-            ch = input_changes(rec.get("inputs"), s.predict_inputs(record.get("features")["grid"]))
+            recorded, current_inputs = dict(rec.get("inputs") or {}), s.predict_inputs(record.get("features")["grid"])
         except UserError as exc:
             out["predict"] = StepState(STALE, str(exc))
         else:
-            out["predict"] = StepState(STALE, _reason(ch)) if ch else StepState(DONE)
+            note = ""
+            if "alphas" in recorded or "alphas" in current_inputs:
+                # a prediction made at the α values of bakes (command line, demo) is complete for them, and any
+                # prediction serves a bake that asks for α values (bakes at other α predict exactly there): which
+                # α values were predicted does not make it stale; the α slider shows the values there are
+                for k in ("count", "alphas"):
+                    recorded.pop(k, None)
+                    current_inputs.pop(k, None)
+            if "alphas" in (rec.get("inputs") or {}):
+                note = (f"at α {', '.join(f'{float(a):g}' for a in rec['inputs']['alphas'])} only (for bakes); "
+                        "Predict again for the α sweep")
+            ch = input_changes(recorded, current_inputs)
+            out["predict"] = StepState(STALE, _reason(ch)) if ch else StepState(DONE, note)
 
     # bake
     brec = current.bake_record
@@ -562,28 +676,31 @@ def predict_job(grid_path, settings: PipelineSettings) -> Iterator[tuple[float, 
     grid_path = Path(grid_path)
     inputs = settings.predict_inputs(grid_path)           # a missing checkpoint fails here, before any work
     ckpt = resolve_checkpoint(settings.checkpoint)
+    alphas = settings.resolved_alphas()
     yield 0.0, "loading the model"
 
     def work(progress):
         from .model.inference import get_predictor
-        from .model.sweep import predict_sweep, sweep_alphas, sweep_cache_key
+        from .model.sweep import predict_sweep, sweep_cache_key
         from .paths import cache_dir
 
         predictor = get_predictor(ckpt, device=settings.device)
         grid = FeatureGrid.load(grid_path)
-        progress.set_status(f"predicting {settings.resolved_sweep_count()} α values")
-        sweep = predict_sweep(predictor, grid, count=settings.resolved_sweep_count(), seed=settings.seed,
-                              heads=settings.heads, steps=settings.resolved_steps(), progress=progress)
-        key = sweep_cache_key(predictor, grid, sweep_alphas(settings.resolved_sweep_count()), settings.seed,
-                              settings.resolved_steps(), settings.heads)
+        key = sweep_cache_key(predictor, grid, alphas, settings.seed, settings.resolved_steps(), settings.heads)
         path = cache_dir("alpha_sweeps") / f"{key}.npz"
+        cached = bool(predictor.key) and path.is_file()
+        progress.set_status(f"predicting {len(alphas)} α value(s)")
+        sweep = predict_sweep(predictor, grid, alphas=alphas, seed=settings.seed, heads=settings.heads,
+                              steps=settings.resolved_steps(), progress=progress)
         if not path.is_file():       # a predictor without a content key: keep the sweep under ours
-            path = cache_dir("alpha_sweeps") / f"pipeline-{_key('sweep', inputs)}.npz"
+            path = cache_dir("alpha_sweeps") / f"pipeline-{_key('sweep', inputs, list(settings.heads))}.npz"
             _atomic_save(sweep, path)
-        return sweep, path
+        return sweep, path, cached
 
-    sweep, path = yield from _background(work, "predict")
-    yield 1.0, f"α sweep of {len(sweep.alphas)} values"
+    sweep, path, cached = yield from _background(work, "predict")
+    what = (f"α sweep of {len(sweep.alphas)} values" if settings.alphas is None
+            else f"α {', '.join(f'{a:g}' for a in sweep.alphas)}")
+    yield 1.0, f"{what} ({', '.join(sweep_heads(sweep))})" + (" from the cache" if cached else "")
     return sweep, path, inputs
 
 

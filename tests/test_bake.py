@@ -381,7 +381,13 @@ def test_manifest_schema_paths_and_errors(tmp_path):
                         ({"format": bake.MANIFEST_FORMAT, "jobs": [{"scene": "a.blend", "object": "A", "out": "o.blend",
                                                                     "colour": 1}]}, "unknown key"),
                         ({"format": bake.MANIFEST_FORMAT, "jobs": [{"scene": "a.blend", "object": "A", "out": "o.blend",
-                                                                    "alpha": 2}]}, "alpha")]:
+                                                                    "alpha": 2}]}, "alpha"),
+                        ({"format": bake.MANIFEST_FORMAT, "jobs": [{"scene": "a.blend", "object": "A", "out": "o.blend",
+                                                                    "alpha": 0.5, "material": {"E": 2e5}}]},
+                         r"jobs\[0\]: 'alpha' with a homogeneous 'material': .*exactly one source"),
+                        ({"format": bake.MANIFEST_FORMAT, "defaults": {"alpha": 0.5},
+                          "jobs": [{"scene": "a.blend", "object": "A", "out": "o.blend", "material": {"file": "f.npz"}}]},
+                         "'alpha' with a field 'material'")]:
         path.write_text(json.dumps(broken))
         with pytest.raises(UserError, match=msg):
             bake.load_manifest(path)

@@ -492,8 +492,11 @@ def test_cli_errors_are_one_line(blender, tmp_path):
                              timeout=300)
         return res.returncode, res.stderr.strip().splitlines()
 
-    code, err = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
-    assert code == 2 and ("needs the UniPixie model" in err[-1] or "has no predicted material yet" in err[-1]) and not any("Traceback" in e for e in err)
+    code, err = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--no-auto", "--out", str(tmp_path / "o.blend"))
+    assert code == 2 and "has no current prediction to bake with" in err[-1] and "--no-auto" in err[-1]
+    assert not any("Traceback" in e for e in err)
+    code, err = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--E", "2e5", "--out", str(tmp_path / "o.blend"))
+    assert code == 2 and len(err) == 1 and "--alpha with --E:" in err[0] and "exactly one source" in err[0]
     code, err = run(str(scene), "--object", "Nope", "--E", "1e5", "--out", str(tmp_path / "o.blend"))
     assert code == 2 and "no object named 'Nope'" in err[-1]
     code, err = run(str(scene), "--object", "CubeA", "--E", "1e5", "--frames", "9-2", "--out", str(tmp_path / "o.blend"))
@@ -532,8 +535,8 @@ def test_bake_through_the_installed_extension_module(blender, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     listed = res.stdout.split("output file(s)")[1]
     assert "2 of 4 job(s)" in res.stdout and "o_CubeA_1.blend" in listed and "o_CubeB_1.blend" in listed
-    res = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--out", str(tmp_path / "o.blend"))
-    assert res.returncode == 2 and ("needs the UniPixie model" in res.stderr or "has no predicted material yet" in res.stderr) and "Traceback" not in res.stderr
+    res = run(str(scene), "--object", "CubeA", "--alpha", "0.5", "--no-auto", "--out", str(tmp_path / "o.blend"))
+    assert res.returncode == 2 and "has no current prediction to bake with" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_bench_bake_runs_and_times_simulation_and_writing(blender, tmp_path):

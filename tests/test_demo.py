@@ -63,8 +63,7 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
     from unipixie.core.pipeline import DONE, PipelineSettings
 
     bpy.ops.wm.open_mainfile(filepath=summary["blend"])
-    settings = PipelineSettings(view_count=demo.QUICK.views, checkpoint=str(tiny_checkpoint),
-                                sweep_count=demo.QUICK.sweep_count)
+    settings = PipelineSettings(view_count=demo.QUICK.views, checkpoint=str(tiny_checkpoint))  # the panel's sweep
     with bio.registered_properties():
         for name, b in bakes.items():
             obj = bpy.data.objects[name]

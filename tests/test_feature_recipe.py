@@ -47,3 +47,38 @@ def test_pack_index_gives_the_recipe_of_the_build():
     index = {"dataset_card": {"settings": {"engine": "Workbench", "views": 8, "render_resolution": 224, "samples": 8}}}
     assert _recipe_of(index) == {"engine": "workbench", "view_count": 8, "resolution": 224, "samples": 8}
     assert _recipe_of({}) is None
+
+
+def test_the_extractor_comes_from_the_model_not_from_the_clip_preference(checkpoint, tmp_path, monkeypatch):
+    """Features extract what the checkpoint was trained on (recipe 'extractor', else config 'feature_model'):
+    an offline model ignores CLIP weights; a model trained on ViT-B-16 extracts CLIP and, without weights, the
+    preference check says to fetch them."""
+    from unipixie.core import clip_features as cf
+    from unipixie.core import pipeline as core
+    from unipixie.core.model import UniPixieModel, preset, save_model
+
+    monkeypatch.setenv("UNIPIXIE_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv(cf.CLIP_WEIGHTS_ENV, raising=False)
+    weights = tmp_path / "clip.bin"
+    weights.write_bytes(b"0")
+    options = PipelineSettings(checkpoint=str(checkpoint), clip_weights=str(weights)).feature_options()
+    assert options.offline                                    # the offline-trained model gets offline features
+    assert core.model_feature_model(checkpoint) == cf.OFFLINE_FEATURE_MODEL
+
+    clip = save_model(UniPixieModel(preset("tiny", feature_model="ViT-B-16", feature_dim=16, patch_size=4,
+                                           spring_anchors=8)), tmp_path / "clip_model")
+    options = PipelineSettings(checkpoint=str(clip)).feature_options()
+    assert not options.offline and options.clip_model == "ViT-B-16" and options.clip_weights is None
+    (msg,) = core.check_settings(checkpoint=str(clip))
+    assert msg.startswith("CLIP weights: the model was trained on 'ViT-B-16' features") and "weights fetch" in msg
+    text, fetch = core.extractor_summary(checkpoint=str(clip))
+    assert "expects ViT-B-16 CLIP features (D = 16); weights missing" in text and fetch == "ViT-B-16"
+
+    # the recipe may name the extractor; it must agree with the config
+    write_feature_recipe(clip, {"engine": "workbench", "view_count": 8, "resolution": 224, "samples": 1,
+                                "extractor": "ViT-B-16"})
+    assert read_feature_recipe(clip)["extractor"] == "ViT-B-16" and core.model_feature_model(clip) == "ViT-B-16"
+    write_feature_recipe(clip, {"engine": "workbench", "view_count": 8, "resolution": 224, "samples": 1,
+                                "extractor": "dinov2-vitb14"})
+    with pytest.raises(UserError, match="names the extractor 'dinov2-vitb14' but .* trained on 'ViT-B-16'"):
+        core.model_feature_model(clip)

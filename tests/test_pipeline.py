@@ -122,6 +122,41 @@ def test_states_done_stale_with_reasons_and_downstream(tmp_path, tiny_checkpoint
     assert core.first_pending(st) == "predict"
 
 
+def test_a_prediction_at_the_bakes_alpha_values_is_done_and_says_so(tmp_path, tiny_checkpoint):
+    """The command line and the demo predict at the α values they bake: done for the panel (with a note), and a
+    panel sweep is done for them; another seed still makes either stale."""
+    explicit = _settings(tiny_checkpoint, alphas=(1.0, 0.5, 0.5))
+    assert explicit.alphas == (0.5, 1.0) and list(explicit.resolved_alphas()) == [0.5, 1.0]
+    with pytest.raises(UserError, match="α values must be numbers in"):
+        _settings(tiny_checkpoint, alphas=(0.5, 1.5))
+    panel = _settings(tiny_checkpoint)
+    rec, _ = _done_record(tmp_path, explicit)
+    assert rec.get("predict")["inputs"]["alphas"] == [0.5, 1.0] and "count" not in rec.get("predict")["inputs"]
+    st = core.step_states(rec, core.CurrentInputs("fp1", panel))
+    assert st["predict"].state == core.DONE and st["predict"].reason.startswith("at α 0.5, 1 only")
+    swept, _ = _done_record(tmp_path, panel)
+    st = core.step_states(swept, core.CurrentInputs("fp1", explicit))
+    assert st["predict"].state == core.DONE and st["predict"].reason == ""
+    st = core.step_states(rec, core.CurrentInputs("fp1", _settings(tiny_checkpoint, seed=3)))
+    assert st["predict"].state == core.STALE and st["predict"].reason == "the seed changed"
+
+
+def test_prediction_at_chosen_alphas_is_one_pass_cached_and_matches_the_sweep(tiny_checkpoint, blob_grid):
+    s = _settings(tiny_checkpoint, alphas=(0.5,), heads=("mpm",))
+    one, path, inputs = _run(core.predict_job(blob_grid, s))
+    assert list(one.alphas) == [0.5] and inputs["alphas"] == [0.5] and path.is_file()
+    sweep, _, _ = _run(core.predict_job(blob_grid, _settings(tiny_checkpoint, heads=("mpm",))))   # 0, 0.5, 1
+    assert np.allclose(one.log10_E[0], sweep.log10_E[1], atol=1e-4)     # same noise: the same prediction at 0.5
+    job = core.predict_job(blob_grid, s)
+    statuses = []
+    try:
+        while True:
+            statuses.append(next(job)[1])
+    except StopIteration:
+        pass
+    assert statuses[-1] == "α 0.5 (mpm) from the cache"
+
+
 # --------------------------------------------------------------------------- checkpoint and preference checks
 def test_checkpoint_resolution_and_clear_messages(tmp_path, tiny_checkpoint, monkeypatch):
     assert core.resolve_checkpoint(tiny_checkpoint) == tiny_checkpoint
@@ -304,3 +339,40 @@ def test_wave_speed_ignores_held_and_empty_material():
     f = MaterialField(unit_cube_grid(), occ, [E, 1e11], [nu, nu], [rho, rho], [jelly, held])
     expect = np.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
     assert max_wave_speed(f) == pytest.approx(expect, rel=1e-6)
+
+
+def test_jobs_side_by_side_share_the_cores_keep_order_and_errors(tmp_path):
+    """core.features.run_side_by_side (the demo's bakes): at most N jobs started at once, each job's worker
+    thread runs while the others are polled; results in order, an error in one job leaves the others going."""
+    from unipixie.core.bake import BackgroundRun
+    from unipixie.core.errors import CancelledError
+    from unipixie.core.features import run_side_by_side
+    from unipixie.core.progress import Progress
+
+    def job(k, seconds=0.3, fail=False):
+        run = BackgroundRun(lambda progress: (time.sleep(seconds), k)[1]).start()
+        try:
+            while not run.wait(0.01):
+                yield 0.5, f"job {k}"
+        finally:
+            if not run.done:
+                run.cancel(wait=True)
+        if fail:
+            raise UserError(f"job {k} failed")
+        return run.result()
+
+    done = []
+    t0 = time.perf_counter()
+    out = run_side_by_side([(lambda k=k: job(k, fail=k == 2), None) for k in range(4)], max_running=2,
+                           on_done=lambda i, r: done.append(i))
+    two = time.perf_counter() - t0
+    assert out[:2] == [0, 1] and isinstance(out[2], UserError) and out[3] == 3 and sorted(done) == [0, 1, 2, 3]
+    t0 = time.perf_counter()
+    assert run_side_by_side([(lambda k=k: job(k), None) for k in range(4)], max_running=1) == [0, 1, 2, 3]
+    one = time.perf_counter() - t0
+    assert one >= 1.2 and two < 0.8 * one
+
+    progress = Progress(show_bar=False)
+    progress.cancel()
+    with pytest.raises(CancelledError):
+        run_side_by_side([(lambda: job(0), progress.sub(1.0, 1.0))], max_running=1)

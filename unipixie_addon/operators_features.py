@@ -3,10 +3,13 @@
 Both run as jobs (progress bar, Esc cancels after the current view) and call
 :mod:`unipixie.core.features`; results go to the cache and their paths are
 stored on the object (``object.unipixie_features``, saved with the .blend).
-The feature model follows the add-on preferences: *CLIP weights* set → CLIP
-ViT-B-16 from those weights; empty → the offline extractor
-(``offline-random-vit-w32``, an untrained random ViT, not CLIP — the one the
-shipped demo model is trained on).
+The feature model is the one the chosen model checkpoint expects (its feature
+recipe's ``extractor``, else its config's ``feature_model``), as for *Run all*:
+the offline extractor (``offline-random-vit-w32``, an untrained random ViT, not
+CLIP — what the shipped model is trained on) or CLIP (e.g. ViT-B-16, from the
+*CLIP weights* preference or the default weights folder that *Fetch CLIP
+weights* fills).  The sub-panel says which, and offers the fetch when the
+weights are missing.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from ..core.blender_io.scene_import import GEOMETRY_TYPES
 from ..core.errors import UserError
 from ..core.features import DEFAULT_RESOLUTION
 from .jobs import JobOperator
-from .preferences import get_preferences
+from .preferences import draw_extractor, get_preferences
 
 ENGINE_ITEMS = [("cycles", "Cycles", "Path tracing with the object's own materials (CPU by default)"),
                 ("workbench", "Workbench", "Fast studio-lit preview renders")]
@@ -38,13 +41,15 @@ class UniPixieFeatureState(bpy.types.PropertyGroup):
 
 
 def _options(op, context):
-    from ..core.features import FeatureOptions
+    """The operator's render options with the extractor the model expects (its recipe / config, as Run all)."""
+    from dataclasses import replace
+
+    from .operators_pipeline import pipeline_settings
 
     prefs = get_preferences(context)
-    weights = bpy.path.abspath(prefs.clip_weights) if prefs.clip_weights else None
-    return FeatureOptions(view_count=op.view_count or int(prefs.default_view_count), resolution=op.resolution,
-                          engine=op.engine, offline=weights is None, clip_weights=weights,
-                          device=str(prefs.device), render_device="auto")
+    model_options = pipeline_settings(context).feature_options()
+    return replace(model_options, view_count=op.view_count or int(prefs.default_view_count), resolution=op.resolution,
+                   engine=op.engine, render_device="auto")
 
 
 def _poll_object(context) -> bool:
@@ -161,6 +166,7 @@ class VIEW3D_PT_unipixie_features(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         state = context.active_object.unipixie_features
+        draw_extractor(layout, context)
         row = layout.row(align=True)
         row.operator(UNIPIXIE_OT_render_views.bl_idname, icon="RENDER_STILL")
         row.operator(UNIPIXIE_OT_compute_features.bl_idname, icon="LIGHTPROBE_VOLUME")

@@ -26,7 +26,7 @@ from ..core.blender_io import field_view
 from ..core.blender_io import pipeline as pio
 from ..core.errors import UserError
 from .jobs import JobOperator
-from .preferences import get_preferences
+from .preferences import get_preferences, store_extractor_info
 
 STEP_ITEMS = [(k, core.STEP_LABELS[k], f"Run the step '{core.STEP_LABELS[k]}' on the active object") for k in core.STEPS]
 STEP_DESCRIPTIONS = {
@@ -421,6 +421,7 @@ def _on_load(*_args):
     _FINGERPRINTS.clear()
     try:
         bpy.context.window_manager.unipixie_cuda_available = core.cuda_device_count() > 0
+        store_extractor_info(bpy.context)
         refresh_all()
     except Exception as exc:  # a handler must never break loading a file
         print(f"UniPixie: could not refresh pipeline states after loading: {exc}")
@@ -449,6 +450,7 @@ def register():
     pio.ensure_model_material()
     try:
         bpy.context.window_manager.unipixie_cuda_available = core.cuda_device_count() > 0
+        store_extractor_info(bpy.context)
     except AttributeError:  # no window manager yet (registration at start-up): the load handler sets it
         pass
 

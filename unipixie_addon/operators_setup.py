@@ -1,4 +1,4 @@
-"""Operators for setting up: check and install the Python dependencies."""
+"""Operators for setting up: check and install the Python dependencies, fetch the CLIP weights."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import bpy
 
 from ..core import deps
 from .jobs import JobOperator
-from .preferences import dependency_dir
+from .preferences import dependency_dir, store_extractor_info
 
 
 class UNIPIXIE_OT_check_dependencies(bpy.types.Operator):
@@ -62,7 +62,37 @@ class UNIPIXIE_OT_install_dependencies(JobOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (UNIPIXIE_OT_check_dependencies, UNIPIXIE_OT_install_dependencies)
+class UNIPIXIE_OT_fetch_clip_weights(JobOperator, bpy.types.Operator):
+    """Download the OpenCLIP weights of the CLIP feature extractor into the default weights folder (Hugging Face Hub:
+    progress, resumed on dropped connections, checksum verified; HF_ENDPOINT selects a mirror). Esc cancels"""
+
+    bl_idname = "unipixie.fetch_clip_weights"
+    bl_label = "Fetch CLIP weights"
+    bl_options = {"REGISTER"}
+
+    model: bpy.props.StringProperty(name="Feature model", default="",
+                                    description="The CLIP feature model (empty: the one the model expects, else "
+                                                "ViT-B-16 laion2b_s34b_b88k)")
+
+    def job_target(self, context):
+        return None
+
+    def make_job(self, context):
+        from ..core import weights
+
+        result = yield from weights.fetch_job(self.model or "")
+        return result
+
+    def finish(self, context, result):
+        for note in result.notes:
+            self.report({"WARNING"}, note)
+        context.window_manager.unipixie_status = result.summary()
+        store_extractor_info(context)
+        self.report({"INFO"}, result.summary())
+        return {"FINISHED"}
+
+
+CLASSES = (UNIPIXIE_OT_check_dependencies, UNIPIXIE_OT_install_dependencies, UNIPIXIE_OT_fetch_clip_weights)
 
 
 register, unregister = bpy.utils.register_classes_factory(CLASSES)

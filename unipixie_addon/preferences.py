@@ -32,6 +32,7 @@ def _on_cache_dir(self, context):
 
 def _on_change(self, context):
     store_problems(context, check_preferences(self))
+    store_extractor_info(context, self)
 
 
 class UNIPIXIE_AP_preferences(bpy.types.AddonPreferences):
@@ -40,7 +41,9 @@ class UNIPIXIE_AP_preferences(bpy.types.AddonPreferences):
     checkpoint: StringProperty(name="Model checkpoint", subtype="FILE_PATH", update=_on_change,
                                description="Directory or model.safetensors of a UniPixie checkpoint (empty: the shipped default model in models/default)")
     clip_weights: StringProperty(name="CLIP weights", subtype="FILE_PATH", update=_on_change,
-                                 description="Local OpenCLIP ViT-B-16 weights (file or directory); empty: the offline extractor (an untrained ViT, not CLIP)")
+                                 description="Local OpenCLIP weights (file or directory) for a model trained on CLIP "
+                                             "features; empty: the default weights folder that 'Fetch CLIP weights' "
+                                             "fills. A model trained on the offline extractor needs none")
     cache_dir: StringProperty(name="Cache directory", subtype="DIR_PATH", update=_on_cache_dir,
                               description="Where renders, feature grids, predictions and bakes are cached (empty: ~/.cache/unipixie)")
     device: EnumProperty(name="Device", update=_on_change,
@@ -54,6 +57,7 @@ class UNIPIXIE_AP_preferences(bpy.types.AddonPreferences):
         layout = self.layout
         for prop in ("checkpoint", "clip_weights", "cache_dir", "device", "default_view_count"):
             layout.prop(self, prop)
+        draw_extractor(layout, context)
         problems = context.window_manager.unipixie_preference_problems
         for msg in problems.splitlines():
             layout.label(text=msg, icon="ERROR")
@@ -82,6 +86,30 @@ def store_problems(context, problems) -> None:
     wm = getattr(context, "window_manager", None)
     if wm is not None and hasattr(wm, "unipixie_preference_problems"):
         wm.unipixie_preference_problems = "\n".join(problems)
+
+
+def store_extractor_info(context, prefs=None) -> None:
+    """Say which feature extractor the chosen model expects and whether its weights are there (shown by
+    :func:`draw_extractor`; computed here, on preference changes, loads and fetches, never in ``draw()``)."""
+    from ..core.pipeline import extractor_summary
+
+    wm = getattr(context, "window_manager", None)
+    if wm is None or not hasattr(wm, "unipixie_extractor_info"):
+        return
+    prefs = prefs or get_preferences(context)
+    text, fetch = extractor_summary(checkpoint=bpy.path.abspath(prefs.checkpoint) if prefs.checkpoint else "",
+                                    clip_weights=bpy.path.abspath(prefs.clip_weights) if prefs.clip_weights else "")
+    wm.unipixie_extractor_info, wm.unipixie_extractor_fetch = text, fetch
+
+
+def draw_extractor(layout, context) -> None:
+    """The feature extractor the model expects (and a *Fetch CLIP weights* button when its weights are missing)."""
+    wm = context.window_manager
+    if getattr(wm, "unipixie_extractor_info", ""):
+        layout.label(text=wm.unipixie_extractor_info, icon="ERROR" if wm.unipixie_extractor_fetch else "INFO")
+    row = layout.row()
+    op = row.operator("unipixie.fetch_clip_weights", icon="IMPORT")
+    op.model = wm.unipixie_extractor_fetch if getattr(wm, "unipixie_extractor_fetch", "") else ""
 
 
 class UNIPIXIE_OT_check_preferences(bpy.types.Operator):
@@ -130,6 +158,7 @@ def register():
         prefs = get_preferences(bpy.context)
         if prefs.cache_dir:
             paths.set_cache_root(bpy.path.abspath(prefs.cache_dir))
+        store_extractor_info(bpy.context, prefs)
     except Exception:  # the context is restricted while Blender starts: the preference applies when changed
         pass
 

@@ -221,12 +221,16 @@ def register():
     wm.unipixie_status = StringProperty(name="UniPixie status", default="")
     wm.unipixie_preference_problems = StringProperty(name="Preference problems", default="")
     wm.unipixie_cuda_available = BoolProperty(name="CUDA available", default=False)
+    wm.unipixie_extractor_info = StringProperty(name="Feature extractor", default="",
+                                                description="Which feature extractor the model expects, and its weights")
+    wm.unipixie_extractor_fetch = StringProperty(name="CLIP weights to fetch", default="",
+                                                 description="The CLIP feature model whose weights are missing")
 
 
 def unregister():
     wm = bpy.types.WindowManager
     for name in ("unipixie_cuda_available", "unipixie_preference_problems", "unipixie_status",
-                 "unipixie_dependency_report"):
+                 "unipixie_dependency_report", "unipixie_extractor_info", "unipixie_extractor_fetch"):
         if hasattr(wm, name):
             delattr(wm, name)
     if hasattr(bpy.types.Object, "unipixie"):

@@ -231,21 +231,25 @@ def _store(name: str, step: str, entry: dict, also: Optional[dict] = None):
 
 def render_step(obj, settings: core.PipelineSettings) -> Iterator[tuple[float, str]]:
     """Render the object's views into the cache (or find them there); returns the views path."""
-    from ..features import render_stage, save_view_sheet
+    from ..features import render_stage, save_view_sheet, views_cache_path
+    from .render import subject_fingerprint
 
     _check_object(obj)
     name = obj.name
     with _running(obj, "render"):
         yield 0.0, "reading the object"
         fp = fingerprint(obj)
+        options = settings.feature_options()
         with bake_muted(obj):
-            views, path = yield from render_stage([obj], settings.feature_options())
+            subject = subject_fingerprint([obj])
+            cached = views_cache_path(subject, options.render_settings()).is_file()
+            views, path = yield from render_stage([obj], options, subject)
         sheet = path.with_name(path.stem + "_sheet.png")
         if not sheet.is_file():
             save_view_sheet(views, sheet)
         _store(name, "render", {"inputs": settings.render_inputs(fp), "views": str(path), "sheet": str(sheet),
                                 "count": int(views.count)})
-        yield 1.0, f"{views.count} views"
+        yield 1.0, f"{views.count} views ({options.engine}, {options.resolution} px)" + (" from the cache" if cached else "")
     return path
 
 
@@ -281,7 +285,8 @@ def features_step(obj, settings: core.PipelineSettings) -> Iterator[tuple[float,
             state.feature_model, state.occupied_voxels = grid.feature_model, int(grid.occupancy.sum())
             if result.views_path is not None:
                 state.views_path, state.view_count = str(result.views_path), int(grid.meta.get("view_count", 0))
-        yield 1.0, f"{int(grid.occupancy.sum())} voxels, D = {grid.dim}"
+        yield 1.0, (f"{int(grid.occupancy.sum())} voxels, D = {grid.dim}, {grid.feature_model}"
+                    + (" from the cache" if result.cache_hit else ""))
     return result
 
 
@@ -369,6 +374,64 @@ def run_all(obj, settings: core.PipelineSettings, scene=None, **bake_overrides) 
         start += span
     yield 1.0, "all steps done"
     return ran
+
+
+def prepare_model_material(obj, settings: core.PipelineSettings, log=print, compute: bool = True) -> str:
+    """Make ``obj``'s model material available to bakes without the panel (``unipixie bake --alpha``).
+
+    Runs whatever of Render views → Features → Predict the object lacks — the panel's own steps, with its cache and
+    the feature recipe of ``settings`` (give ``settings.with_model_recipe()`` and, for a quick first bake,
+    ``alphas`` = the bakes' α values) — logging each step with its time and whether it came from the cache; a
+    prediction already recorded on the object and current is used as it is.  Then registers the model material and
+    tells the bakes where the prediction is.  ``compute=False`` runs nothing: a missing or stale prediction is a
+    :class:`UserError` naming the remedy.  Returns the object's fingerprint (for :func:`note_bake`)."""
+    import time
+
+    _check_object(obj)
+    name = obj.name
+    fp = fingerprint(obj)
+    st = states(obj, settings, fingerprint_value=fp)
+    todo = []
+    if st["predict"].state != core.DONE:
+        todo.append("predict")
+        if st["features"].state != core.DONE:
+            todo[:0] = ["features"] if st["render"].state == core.DONE else ["render", "features"]
+    if todo and not compute:
+        why = "; ".join(f"{core.STEP_LABELS[k]} {st[k].label()}" for k in ("render", "features", "predict")
+                        if st[k].state != core.DONE)
+        raise UserError(f"object '{name}' has no current prediction to bake with at α ({why}); give --features "
+                        "GRID.npz (from 'unipixie features'), run Predict in the panel and save the .blend, or drop "
+                        "--no-auto to compute the missing steps now")
+    if not todo:
+        log(f"  {', '.join(core.STEP_LABELS[k] for k in ('render', 'features', 'predict'))}: done (recorded in the "
+            "scene)")
+    for step in todo:
+        t0 = time.perf_counter()
+        status = ""
+        job = STEP_JOBS[step](_object(name), settings)
+        try:
+            while True:
+                try:
+                    _, status = next(job)
+                except StopIteration:
+                    break
+        finally:
+            job.close()
+        log(f"  {core.STEP_LABELS[step]}: {status} ({time.perf_counter() - t0:.1f} s)")
+    obj = _object(name)
+    ensure_model_material()
+    sync_plan(obj, settings)
+    if core.get_plan(name) is None:
+        raise UserError(f"object '{name}': the prediction is not in the cache any more; run the bake again")
+    return fp
+
+
+def note_bake(obj, options, fingerprint_value: str) -> None:
+    """Record on ``obj`` the pipeline's bake entry of a model-material bake made outside :func:`bake_step` (the
+    command line), so the panel can tell when the bake goes stale (another prediction, an edited mesh)."""
+    sweep = (read_record(obj).get("predict") or {}).get("sweep", "") if options.material.kind == "model" else ""
+    _store(obj.name, "bake", {"fingerprint": fingerprint_value, "sweep": sweep, "solver": options.solver,
+                              "alpha": options.alpha})
 
 
 def run_to_end(job, progress=None):

@@ -9,7 +9,8 @@ from . import _common
 
 NAME = "bake"
 HELP = "simulate objects of a .blend (MPM, LBS, spring-mass) and save them baked to keyframes"
-EXAMPLES = """  unipixie bake scene.blend --object Jelly --solver mpm --alpha 0.5 --out baked.blend
+EXAMPLES = """  unipixie bake scene.blend --object Jelly --solver mpm --alpha 0.5 --frames 1-12 --out baked.blend
+      (renders, extracts features and predicts whatever the object lacks, cached for the next run)
   unipixie bake scene.blend --object Jelly --solver spring_mass --E 2e5 --nu 0.3 --density 800 --frames 1-120 --out baked.blend
   unipixie bake scene.blend --object 'Rock*' --object Plant --solver mpm --material-file field.npz --out 'baked_{object}.blend'
   unipixie bake scene.blend --object Jelly --alpha 0,0.5,1 --features jelly_grid.npz --effects linear_drag:c=0.5 --device cuda --out 'jelly_a{alpha}.blend'
@@ -73,11 +74,18 @@ def add_arguments(p):
     p.add_argument("--manifest", type=_common.existing_file, metavar="JOBS.json",
                    help="a job manifest (format unipixie.bake-manifest/1, see docs/baking.md)")
     p.add_argument("--list", action="store_true", help="print the jobs (of this shard) and exit")
-    m = p.add_argument_group("material (default: --alpha → the model's prediction; otherwise the object's UniPixie settings)")
+    m = p.add_argument_group("material: one source — the model at --alpha [--features --checkpoint --seed], "
+                             "--material-file, or --E/--nu/--density/--material-class (default: the object's "
+                             "UniPixie settings)")
     m.add_argument("--features", metavar="GRID.npz",
-                   help="the object's feature grid ('unipixie features'): the model predicts the material at --alpha")
-    m.add_argument("--checkpoint", metavar="DIR", help="model checkpoint for --features (default: the shipped model)")
-    m.add_argument("--seed", type=int, default=0, help="model noise seed for --features (default 0)")
+                   help="the object's feature grid ('unipixie features'): the model predicts the material at --alpha "
+                        "from it (without it, the object's own features are used or computed)")
+    m.add_argument("--checkpoint", metavar="DIR", help="the model for --alpha (default: the shipped model)")
+    m.add_argument("--seed", type=int, default=0, help="the model's noise seed (default 0)")
+    m.add_argument("--no-auto", action="store_true",
+                   help="compute nothing before baking: --alpha then needs --features or a prediction recorded on "
+                        "the object (the panel's Predict, saved in the .blend); without --no-auto the missing steps "
+                        "(render views, features, prediction) run first, as the panel's Run all, and are cached")
     m.add_argument("--material-file", metavar="FIELD.npz", help="a material field (unipixie.material_field/1)")
     m.add_argument("--E", type=_positive, metavar="PA", help="Young's modulus of a homogeneous material, Pa")
     m.add_argument("--nu", type=float, metavar="NU", help="Poisson's ratio of a homogeneous material")
@@ -145,19 +153,14 @@ def jobs_from_args(args):
     if not args.out:
         raise UserError("give --out OUT.blend (where to save the baked scene)")
     homogeneous = [v is not None for v in (args.E, args.nu, args.density, args.material_class)]
-    if args.material_file and any(homogeneous):
-        raise UserError("give either --material-file or --E/--nu/--density/--material-class, not both")
-    if args.features and (args.material_file or any(homogeneous)):
-        raise UserError("--features (the model's material) cannot be combined with --material-file or --E/--nu/...")
-    if args.features and not args.alpha:
-        raise UserError("--features needs --alpha: the model predicts the material at α")
-    if args.alpha and any(homogeneous):
-        raise UserError("--alpha chooses the model's material (with --features or the object's model settings); a "
-                        "homogeneous material given by --E/--nu/--density/--material-class has no α — drop one of them")
+    _check_one_material_source(args)
+    if (args.features or args.checkpoint) and not args.alpha:
+        raise UserError(f"{'--features' if args.features else '--checkpoint'} needs --alpha: the model predicts the "
+                        "material at α")
     material = None
-    if args.features:
-        material = bake.ModelSource(features=str(args.features), checkpoint=args.checkpoint or "", seed=args.seed,
-                                    device=args.device or "cpu")
+    if args.alpha:
+        material = bake.ModelSource(features=str(args.features or ""), checkpoint=args.checkpoint or "",
+                                    seed=args.seed, device=args.device or "cpu")
     elif args.material_file:
         material = bake.FieldFileSource(str(args.material_file))
     elif any(homogeneous):
@@ -172,6 +175,21 @@ def jobs_from_args(args):
                             device=args.device or "cpu", material=material, output=args.output,
                             interpolation=args.interpolation, particles=args.particles,
                             solver_settings=args.settings, scenario=_scenario_overrides(args), resolve=_object_names)
+
+
+def _check_one_material_source(args) -> None:
+    """Flags of more than one material source are refused, naming them and the rule (:data:`bake.MATERIAL_RULE`)."""
+    from ..bake import MATERIAL_RULE
+    from ..errors import UserError
+
+    groups = [[f for f, v in (("--alpha", args.alpha), ("--features", args.features), ("--checkpoint", args.checkpoint))
+               if v],
+              ["--material-file"] if args.material_file else [],
+              [f for f, v in (("--E", args.E), ("--nu", args.nu), ("--density", args.density),
+                              ("--material-class", args.material_class)) if v is not None]]
+    used = [g for g in groups if g]
+    if len(used) > 1:
+        raise UserError(f"{' with '.join('/'.join(g) for g in used)}: {MATERIAL_RULE}")
 
 
 def _object_names(scene: str):
@@ -210,6 +228,6 @@ def run(args) -> int:
     from ..blender_io.bake import run_jobs
 
     with Progress(total=len(mine_jobs), description="bake") as progress:
-        reports = run_jobs(mine_jobs, progress=progress, allow_long=args.allow_long)
+        reports = run_jobs(mine_jobs, progress=progress, allow_long=args.allow_long, auto=not args.no_auto)
     print(f"{tag}baked {len(reports)} object(s) into {len(mine)} file(s)")
     return 0

@@ -37,6 +37,9 @@ RECIPE_FILE = "feature_recipe.json"
 """Optional: how the training objects' views were rendered (engine, view count, resolution, samples) —
 the pipeline renders new objects the same way so the model sees features from its training distribution."""
 RECIPE_KEYS = ("engine", "view_count", "resolution", "samples")
+RECIPE_OPTIONAL_KEYS = ("extractor",)
+"""``extractor``: the feature model the training features came from (e.g. ``"ViT-B-16"``); when absent, the
+model config's ``feature_model`` (the two must agree)."""
 TRAINING_TENSORS = "training_state.safetensors"
 TRAINING_JSON = "training_state.json"
 WEIGHTS_FORMAT = "unipixie.model_weights/1"
@@ -87,7 +90,7 @@ def write_feature_recipe(directory, recipe: dict) -> Path:
     if missing:
         raise ValueError(f"feature recipe lacks {missing}")
     path = Path(directory) / RECIPE_FILE
-    _write_json(path, {k: recipe[k] for k in RECIPE_KEYS})
+    _write_json(path, {k: recipe[k] for k in RECIPE_KEYS + RECIPE_OPTIONAL_KEYS if k in recipe})
     return path
 
 
@@ -100,6 +103,8 @@ def read_feature_recipe(directory) -> Optional[dict]:
         doc = json.loads(path.read_text())
         recipe = {"engine": str(doc["engine"]).lower(), "view_count": int(doc["view_count"]),
                   "resolution": int(doc["resolution"]), "samples": int(doc["samples"])}
+        if doc.get("extractor"):
+            recipe["extractor"] = str(doc["extractor"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise UserError(f"{path}: not a readable feature recipe ({exc})") from None
     if recipe["engine"] not in ("cycles", "workbench") or min(recipe["view_count"], recipe["resolution"],

@@ -184,9 +184,10 @@ def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, 
 
 def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_SWEEP_COUNT, seed: int = 0,
                   heads=("mpm", "lbs", "spring_mass"), steps: int = DEFAULT_STEPS, use_cache: bool = True,
-                  progress: Optional[Progress] = None) -> AlphaSweep:
-    """Predict at ``count`` α values in one pass (cached on disk in ``<cache>/alpha_sweeps``)."""
-    alphas = sweep_alphas(count)
+                  progress: Optional[Progress] = None, alphas=None) -> AlphaSweep:
+    """Predict at ``count`` evenly spaced α values — or at exactly ``alphas`` (ascending, e.g. the α values
+    of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``)."""
+    alphas = sweep_alphas(count) if alphas is None else np.asarray(alphas, dtype=np.float64).reshape(-1)
     path = None
     if use_cache and predictor.key:
         path = cache_dir("alpha_sweeps") / f"{sweep_cache_key(predictor, grid, alphas, seed, steps, heads)}.npz"
