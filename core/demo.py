@@ -531,9 +531,9 @@ def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, say) -> dic
                                        plan.mpm_cells)
     say(f"         {obj.name}: wave speed up to {c:.0f} m/s → MPM grid of {cells} cells across "
         f"(~{cost:.2g} particle-substeps)")
-    # dx given: the solver's own automatic grid would refine the thinnest parts (leaves: 4 cells across their
-    # thickness), some 10³ times the particles of this budget on a CPU; the demo keeps the grid its budget affords
-    return {"cells_across": cells, "dx": bo.size / cells}
+    # cells_across given: the grid its budget affords (the solver's bake default would also refine the thinnest
+    # parts to 4 cells across their thickness: leaves, some 10³ times the particles of this budget on a CPU)
+    return {"cells_across": cells}
 
 
 def _max_displacement(obj, frames: int) -> float:
