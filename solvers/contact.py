@@ -42,7 +42,8 @@ RIGID_CONTACT_BETA = 0.55
 """β of the rigid floor's contact frequency β c_p / ℓ (module docstring; measured in docs/contact.md)."""
 
 MAX_CONTACT_RATE = 1.0
-"""Largest ω Δt of a contact spring in the explicit solvers (symplectic Euler is stable below 2)."""
+"""Largest ω Δt of a contact spring in the explicit solvers (symplectic Euler is stable below 2) and in LBS's
+implicit Newmark step (whose energy a stiffer contact, switched on and off within a step, does not conserve)."""
 
 PENETRATION_TOLERANCE = 1.0e-3
 """m: no tracked point or baked vertex may end up further below the ground plane than this (tested)."""
