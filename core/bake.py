@@ -415,12 +415,16 @@ class ModelSource(MaterialSource):
         :func:`register_material_predictor` is asked (the add-on's cached prediction); with neither,
         a :class:`UserError` says what is missing.
     seed: the model's noise seed (same seed, same material); device: torch device for the model.
+    solver_heads: give LBS and spring-mass the material of their own heads (the LBS head's E, ν; the spring
+        head's stiffnesses and softness) instead of the MPM head's continuum field, which all three solvers
+        discretise the same way by default (:func:`material_from_prediction`).
     """
 
     features: str = ""
     checkpoint: str = ""
     seed: int = 0
     device: str = "cpu"
+    solver_heads: bool = False
     kind = "model"
 
     def resolve(self, obj, alpha, solver):
@@ -431,14 +435,16 @@ class ModelSource(MaterialSource):
             raise UserError(f"α must lie in [0, 1], got {alpha:g}")
         if self.features:
             return predict_material(obj, self.features, alpha, solver, checkpoint=self.checkpoint or None,
-                                    seed=self.seed, device=self.device)
+                                    seed=self.seed, device=self.device, solver_heads=self.solver_heads)
         if not _PREDICTORS:
             raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model and the object's feature "
                             "grid, and neither a feature grid (--features GRID.npz from 'unipixie features') nor a "
                             "prediction of the object is available ('unipixie bake --alpha' computes them unless "
                             "--no-auto); bake with a homogeneous material (--E/--nu/--density/--material-class) or a "
                             "material field file (--material-file) instead")
-        resolved = _PREDICTORS[-1](obj, alpha, solver)
+        predictor = _PREDICTORS[-1]
+        resolved = (predictor(obj, alpha, solver, solver_heads=True) if self.solver_heads
+                    else predictor(obj, alpha, solver))
         if not isinstance(resolved, ResolvedMaterial):
             raise TypeError(f"material predictor returned {type(resolved).__name__}, expected ResolvedMaterial")
         return resolved
@@ -447,6 +453,8 @@ class ModelSource(MaterialSource):
         d = {"source": "model"}
         if self.features:
             d.update(features=str(self.features), checkpoint=str(self.checkpoint), seed=self.seed)
+        if self.solver_heads:
+            d["solver_heads"] = True
         return d
 
 
@@ -455,25 +463,30 @@ MODEL_HEADS = {"mpm": ("mpm",), "lbs": ("mpm", "lbs"), "spring_mass": ("mpm", "s
 
 
 def predict_material(obj: BakeObject, features, alpha: float, solver: str, checkpoint=None, seed: int = 0,
-                     device: str = "cpu") -> ResolvedMaterial:
+                     device: str = "cpu", solver_heads: bool = False) -> ResolvedMaterial:
     """Run the model on the object's feature grid at one α and turn its output into the solver's material."""
     from .model import predict
     from .types import FeatureGrid
 
     grid = FeatureGrid.load(features)
     pred = predict(grid, [alpha], heads=MODEL_HEADS[solver], seed=seed, checkpoint=checkpoint, device=device)
-    res = material_from_prediction(obj, pred, 0, solver)
+    res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
     res.description = f"model at α {alpha:g} ({Path(str(checkpoint or 'default model')).name}, seed {seed})"
     return res
 
 
-def material_from_prediction(obj: BakeObject, prediction, index: int, solver: str) -> ResolvedMaterial:
+def material_from_prediction(obj: BakeObject, prediction, index: int, solver: str,
+                             solver_heads: bool = False) -> ResolvedMaterial:
     """The material for ``solver`` from a model prediction (``core.model.Prediction``) at ``prediction.alphas[index]``.
 
-    MPM: the predicted field, mapped from the normalised cube onto the object's world bounding box.
-    LBS: the LBS head's E, ν field (density and class from the MPM head) and its 650 skinning parameters
-    as the solver's ``skinning_params``.  Spring-mass: the MPM field for the masses and the spring head's
-    per-anchor stiffness and softness as the solver's explicit ``stiffness`` / ``softness``.
+    Every solver gets the MPM head's continuum field (E, ν, ρ, class), mapped from the normalised cube onto the
+    object's world bounding box, and discretises it its own way: one material, one motion whichever solver
+    bakes it (docs/fidelity.md).  LBS also takes the LBS head's 650 skinning parameters (its handles' weights,
+    a deformation basis, not a material).  With ``solver_heads`` LBS takes the LBS head's E, ν field instead
+    (density and class from the MPM head) and spring-mass the spring head's per-anchor stiffness and softness
+    as its explicit ``stiffness`` / ``softness`` — the paper's heads, fitted to imitate MPM motion with each
+    solver's former discretisation (measured: the demo plant's spring-mass bake moved 84 cm with them, 15 cm
+    with the continuum field, MPM 12 cm).
     """
     from .normalise import Normalisation
 
@@ -488,10 +501,15 @@ def material_from_prediction(obj: BakeObject, prediction, index: int, solver: st
         if prediction.lbs is None:
             raise UserError("the prediction has no LBS head output")
         lp = prediction.lbs[index]
+        if not solver_heads:
+            return ResolvedMaterial(norm.field_to_world(field_n), settings={"skinning_params": np.asarray(lp.params)},
+                                    description=f"model at α {alpha:g} (LBS head's skinning)")
         lbs_field = dataclasses.replace(field_n, E=np.asarray(lp.E, np.float32), nu=np.asarray(lp.nu, np.float32))
         return ResolvedMaterial(norm.field_to_world(lbs_field), settings={"skinning_params": np.asarray(lp.params)},
                                 description=f"model at α {alpha:g} (LBS head)")
     if solver == "spring_mass":
+        if not solver_heads:
+            return ResolvedMaterial(norm.field_to_world(field_n), description=f"model at α {alpha:g}")
         if prediction.spring_mass is None:
             raise UserError("the prediction has no spring-mass head output")
         sp = prediction.spring_mass[index]
@@ -508,11 +526,14 @@ def material_source_from_dict(d) -> MaterialSource:
     if d is None or d == "model":
         return ModelSource()
     if isinstance(d, dict) and (d.get("source") == "model" or "features" in d):
-        unknown = set(d) - {"source", "features", "checkpoint", "seed"}
+        unknown = set(d) - {"source", "features", "checkpoint", "seed", "solver_heads"}
         if unknown:
-            raise UserError(f"'material' (model) has unknown key(s) {sorted(unknown)}; use features, checkpoint, seed")
+            raise UserError(f"'material' (model) has unknown key(s) {sorted(unknown)}; use features, checkpoint, seed, "
+                            "solver_heads")
+        if not isinstance(d.get("solver_heads", False), bool):
+            raise UserError(f"'material' (model): solver_heads must be true or false, got {d['solver_heads']!r}")
         return ModelSource(features=str(d.get("features", "")), checkpoint=str(d.get("checkpoint", "") or ""),
-                           seed=int(d.get("seed", 0)))
+                           seed=int(d.get("seed", 0)), solver_heads=d.get("solver_heads", False))
     if isinstance(d, str):
         return FieldFileSource(d)
     if not isinstance(d, dict):

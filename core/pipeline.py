@@ -856,9 +856,10 @@ def refine_job(plan: ModelPlan, alpha: float, heads=()) -> Iterator[tuple[float,
     return result
 
 
-def model_material(obj, alpha: float, solver: str):
+def model_material(obj, alpha: float, solver: str, solver_heads: bool = False):
     """The model's material for ``obj`` (a :class:`~unipixie.core.bake.BakeObject`) at ``alpha`` for ``solver``
-    (registered as the bake's material predictor; no Blender access: runs in the bake's worker thread)."""
+    (registered as the bake's material predictor; no Blender access: runs in the bake's worker thread);
+    ``solver_heads``: see :func:`~unipixie.core.bake.material_from_prediction`."""
     from .bake import MODEL_HEADS, material_from_prediction
 
     plan = get_plan(obj.name)
@@ -866,7 +867,7 @@ def model_material(obj, alpha: float, solver: str):
         raise UserError(f"object '{obj.name}' has no predicted material yet: run Predict in the UniPixie panel "
                         "(after Render views and Features), or bake with a homogeneous material or a field file")
     pred, how, _ = exact_prediction(plan, alpha, MODEL_HEADS[solver])
-    res = material_from_prediction(obj, pred, 0, solver)
+    res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
     res.description = f"model at α {float(alpha):g} ({how}, {Path(plan.checkpoint).name}, seed {plan.seed})"
     return res
 

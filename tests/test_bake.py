@@ -433,13 +433,22 @@ def test_model_source_predicts_each_solvers_material_from_a_feature_grid(tiny_mo
     assert np.allclose(field_w.geometry.origin, norm.to_world(unit_cube_grid(16).origin))
     again = bake.ModelSource(features=str(grid), checkpoint=str(ckpt)).resolve(obj, 0.5, "mpm").spec
     assert np.array_equal(again.E, field_w.E)  # deterministic for a seed
+    # by default every solver discretises the MPM head's continuum field (one material, one motion)
     res = src.resolve(obj, 0.5, "lbs")
     assert res.settings["skinning_params"].shape == (650,) and isinstance(res.spec, MaterialField)
-    res = src.resolve(obj, 1.0, "spring_mass")
+    assert np.array_equal(res.spec.E, field_w.E) and np.array_equal(res.spec.nu, field_w.nu)
+    res = src.resolve(obj, 0.5, "spring_mass")
+    assert np.array_equal(res.spec.E, field_w.E) and "stiffness" not in res.settings
+    # the solvers' own heads on request
+    heads = bake.ModelSource(features=str(grid), checkpoint=str(ckpt), solver_heads=True)
+    res = heads.resolve(obj, 0.5, "lbs")
+    assert res.settings["skinning_params"].shape == (650,) and isinstance(res.spec, MaterialField)
+    res = heads.resolve(obj, 1.0, "spring_mass")
     assert res.settings["stiffness"].shape == (32,) and res.settings["anchors"] == 32
     assert np.isfinite(res.settings["softness"])
-    d = src.to_dict()
-    assert isinstance(bake.material_source_from_dict(d), bake.ModelSource)
+    for s in (src, heads):
+        back = bake.material_source_from_dict(s.to_dict())
+        assert isinstance(back, bake.ModelSource) and back.solver_heads == s.solver_heads
     with pytest.raises(UserError, match="not a UniPixie checkpoint|not found"):
         bake.ModelSource(features=str(grid), checkpoint=str(ckpt.parent / "nowhere")).resolve(obj, 0.5, "mpm")
 
@@ -450,7 +459,7 @@ def test_model_material_drives_a_real_spring_mass_run(tiny_model):
     ckpt, grid = tiny_model
     obj = _cube(0.3, centre=(0.0, 0.0, 0.5))
     opts = bake.BakeOptions(solver="spring_mass", frames=(1, 4), alpha=0.3,
-                            material=bake.ModelSource(features=str(grid), checkpoint=str(ckpt)),
+                            material=bake.ModelSource(features=str(grid), checkpoint=str(ckpt), solver_heads=True),
                             solver_settings={"neighbours": 10, "fixed_springs": 5, "fill_per_anchor": 6})
     result = bake.simulate(obj, Scenario(ground_height=0.0), opts)
     assert result.trajectory.positions.shape == (4, 8, 3) and "model at α 0.3" in result.material_description

@@ -82,6 +82,9 @@ def add_arguments(p):
                         "from it (without it, the object's own features are used or computed)")
     m.add_argument("--checkpoint", metavar="DIR", help="the model for --alpha (default: the shipped model)")
     m.add_argument("--seed", type=int, default=0, help="the model's noise seed (default 0)")
+    m.add_argument("--solver-heads", action="store_true",
+                   help="LBS and spring-mass take their own heads' material (LBS E/ν, spring stiffnesses) instead of "
+                        "the continuum field all solvers share by default (one material, one motion)")
     m.add_argument("--no-auto", action="store_true",
                    help="compute nothing before baking: --alpha then needs --features or a prediction recorded on "
                         "the object (the panel's Predict, saved in the .blend); without --no-auto the missing steps "
@@ -160,7 +163,8 @@ def jobs_from_args(args):
     material = None
     if args.alpha:
         material = bake.ModelSource(features=str(args.features or ""), checkpoint=args.checkpoint or "",
-                                    seed=args.seed, device=args.device or "cpu")
+                                    seed=args.seed, device=args.device or "cpu",
+                                    solver_heads=bool(getattr(args, "solver_heads", False)))
     elif args.material_file:
         material = bake.FieldFileSource(str(args.material_file))
     elif any(homogeneous):
