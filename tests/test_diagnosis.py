@@ -49,8 +49,11 @@ CASES = {
     "quadratic_drag:k=0.3": ("mpm", {"cells_across": 8}, dict(shape="cube", scenario="throw"), DIAG_FINE),
     "wind:acceleration=0.3,0.5,0": ("mpm", {"cells_across": 8}, dict(shape="cube", scenario="throw"), DIAG_FINE),
     "ground_friction:mu=0.3": ("spring_mass", DIAG, dict(shape="cube", scenario="slide", true_E_scale=1.2)),
-    "material_damping:eta=150": ("spring_mass", DIAG, dict(shape="cube", scenario="drop", velocity=(0, 0, 0),
-                                                             height=0.1, true_E_scale=1.2)),
+    # material damping on a vibrating clamped bar: in a drop its loss at the impact is indistinguishable from the
+    # ground contact's, which the base model now fits (core/diagnosis/contact_fit.py; measured on the former drop
+    # case, eta = 150: base contact c = 3.3e3 Pa·s/m, k = 2.3e6 Pa/m explains it to 2.2 mm, noise floor 1.8 mm)
+    "material_damping:eta=1500": ("spring_mass", BAR, dict(shape="bar", scenario="clamped", E=5e5,
+                                                             true_E_scale=1.2, duration=0.6), BAR),
     "contact_damping:c=3e4,k=1e6": ("spring_mass", DIAG, dict(shape="cube", scenario="drop", velocity=(0, 0, 0),
                                                                height=0.1, true_E_scale=1.2)),
     "plasticity:yield_stress=20000": ("spring_mass", BAR, dict(shape="bar", scenario="clamped", E=5e5,
