@@ -47,7 +47,7 @@ computed after the stepping, one GEMM per chunk of frames.  ``meta["phase_second
 **Contact and clamp.**  The ground follows the contact law of :mod:`.contact` at ``collision_points``
 surface samples, each standing for an equal share A of the surface: the potential ½ k (h − z_p)₊² with
 k = min(k_g A, k_r, m (ω_max)²), k_r = β² M A / ℓ (ℓ the cubature spacing: the rigid floor is as stiff as the
-finest deformation the cubature resolves; m the sample's share of the mass and ω_max = ``MAX_CONTACT_RATE`` /
+finest deformation the cubature resolves; m the sample's share of the mass and ω_max = ``IMPLICIT_MAX_CONTACT_RATE`` /
 ``max_dt``: the step resolves the contact's oscillation) and, with ``contact_damping``, the damper c_g A on the mean normal velocity
 of the step at the samples in contact; the clamp
 (``pinned_box``, stationary class) is a penalty ½ κ_p m_p |x_p − X_p|² on the fill points
@@ -105,7 +105,7 @@ from .body import Body
 from .effects import PhysicsTerms
 from .lbs_fit import DEFAULT_FIT_ITERATIONS, fit_skinning, torch_threads
 from .material_sampling import MaterialSpec, PointMaterial, sample_material
-from .contact import MAX_CONTACT_RATE, RIGID_CONTACT_BETA
+from .contact import IMPLICIT_MAX_CONTACT_RATE, RIGID_CONTACT_BETA
 from .sampling import farthest_point_sampling
 from .scenario import Scenario
 from .spring_mass import fill_solid
@@ -859,11 +859,11 @@ class LBSSimulation(Simulation):
         M_col = (lam + 2 * mu)[:, self._collision_cubature]                                  # (E, K) Pa
         k_ground = np.array([t.ground_stiffness for t in terms_list])[:, None]
         k_rigid = RIGID_CONTACT_BETA ** 2 * M_col * area / self.cubature_spacing
-        # the implicit step follows a contact's oscillation only while ω Δt ≲ 1 (ω² = k / m, m a sample's share
+        # the implicit step follows a contact's oscillation only while ω Δt ≲ 2 (ω² = k / m, m a sample's share
         # of the mass): a stiffer spring switched on and off by the active set feeds energy into a Newmark step
         # (a stiff duck dropped at Δt = 5 ms flew off); the cap lets a sample sink about v Δt, put back on the
         # plane in the output
-        k_step = self.total_mass / len(self.collision_rest) * (MAX_CONTACT_RATE / st.max_dt) ** 2
+        k_step = self.total_mass / len(self.collision_rest) * (IMPLICIT_MAX_CONTACT_RATE / st.max_dt) ** 2
         kc = np.minimum(np.minimum(k_ground * area, k_rigid), k_step)
         c_ground = np.array([t.ground_damping for t in terms_list])[:, None]
         c_layer = 2.0 * eta[:, None] * kc / M_col       # the layer's Kelvin–Voigt damper 2η k_r/M × k/k_r
