@@ -69,8 +69,9 @@ class _Tuning:
 DEFAULT_CELLS_ACROSS = 32
 """Grid cells across a mesh body's largest extent by default."""
 DEFAULT_CELLS_ACROSS_THINNEST = 4
-"""Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: the bending of a bar four cells
-thick is within a few per cent of the continuum's)."""
+"""Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: a clamped bar four cells thick
+vibrates within 2.3 % of Euler–Bernoulli's frequency; its tip sag is 28–35 % high at every resolution, a creep
+measured there and not yet located)."""
 AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
 """Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
 

@@ -46,7 +46,8 @@ def test_contact_scales():
 
 @pytest.mark.parametrize("settings, refined", [
     (SpringMassSettings(anchors=96), {"anchors": 192, "safety": 0.35}),
-    (MPMSettings(cells_across=12, viscous_cfl=0.2), {"cells_across": 18, "cells_across_thinnest": 6}),
+    (MPMSettings(cells_across=12, viscous_cfl=0.2), {"cells_across": 18, "cells_across_thinnest": 0}),  # N given: N
+    (MPMSettings(viscous_cfl=0.2), {"cells_across": 48, "cells_across_thinnest": 6}),                 # bake default
     (LBSSettings(), {}),
 ])
 def test_finer_settings_refine_space_and_time(settings, refined):
