@@ -417,7 +417,9 @@ def test_exit_codes_follow_one_table(capsys):
 def test_ctrl_c_cancels_cleanly_with_status_130(tmp_path):
     target = tmp_path / "out.bin"
     code = textwrap.dedent(f"""
-        import sys, time
+        import signal, sys, time
+        # as in a terminal: a shell without job control starts background jobs (a CI runner's) with SIGINT ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from unipixie.core import atomic_io, cli
         def run(args):
             with atomic_io.atomic_path({str(target)!r}, min_size=0) as tmp:
@@ -539,7 +541,9 @@ def test_a_real_full_disk(full_disk, tmp_path):
 
 def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
     code = textwrap.dedent("""
-        import sys, time
+        import signal, sys, time
+        # as in a terminal: a shell without job control starts background jobs (a CI runner's) with SIGINT ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         from unipixie.core import cli
         def run(args):
             try:
