@@ -89,20 +89,24 @@ class DemoPlan:
 
 SPRING_SUBSTEP_LIMIT = 20_000
 """The demo's spring-mass bakes stop (and are reported) when the predicted springs need more substeps per
-frame than this (at the model's 256 anchors, 20 000 × 48 frames is about 2–3 minutes on 2 CPU cores), instead
-of running for an hour."""
+frame than this (20 000 × 48 frames is minutes on 2 CPU cores), instead of running for an hour."""
+
+DEMO_SPRING_ANCHORS = 1024
+"""The full demo's spring-mass anchors: its plant moves as at the bake default of 2048 (both 32 mm RMS from the
+MPM plant over the clip, 4.4 % of the plant's size) in a quarter of the time (83 s against 331 s on 2 cores)."""
 
 FULL = DemoPlan("full", views=24, resolution=224, frames=48, fps=24, mpm_budget=1.2e8,
                 mpm_cells=(10, 32), lbs_settings={},
-                spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=6,
-                sheet_size=(720, 360))
+                spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT, "anchors": DEMO_SPRING_ANCHORS},
+                sheet_frames=6, sheet_size=(720, 360))
 QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget=1.2e7,
                  mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
                  spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
                  sheet_size=(480, 240))
 SOLVER_LABELS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "spring-mass"}
-BAKE_ORDER = ("mpm", "lbs", "spring_mass")
-"""The demo's bakes start in this order, the longest first (they run side by side on the CPU cores)."""
+BAKE_ORDER = ("spring_mass", "mpm", "lbs")
+"""The demo's bakes start in this order, the longest first (they run side by side on the CPU cores; measured on
+2 cores: spring-mass 83 s, each MPM plant about 70 s, the LBS duck 6 s)."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -136,6 +140,10 @@ class DemoResult:
     bakes: list
     failed: list
     alpha_difference: float
+    solver_difference: float
+    """RMS (m, over the plant's vertices and the clip) of the difference between the MPM and the spring-mass
+    plants' displacements at the spring-mass bake's α: one material, one motion (docs/fidelity.md)."""
+    solver_difference_over_size: float
     seconds: float
     stage_seconds: dict
     checkpoint: str
@@ -364,7 +372,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         for obj, solver, alpha in jobs:
             pio.sync_plan(obj, settings)
             planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, say)))
-        planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first: MPM, LBS, spring-mass
+        planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first (BAKE_ORDER)
         bakes, failed = [], []
 
         def bake_done(index, rep):
@@ -403,17 +411,26 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         baked = {b.object for b in bakes}
         difference = (_alpha_difference(mpm[0], mpm[-1], plan.frames)
                       if mpm[0].name in baked and mpm[-1].name in baked else float("nan"))
+        same_alpha = [o for o, job in zip(plants, bakes_todo) if job == ("mpm", float(plan.spring_alpha))]
+        spring = [o for o, (solver, _) in zip(plants, bakes_todo) if solver == "spring_mass"]
+        solver_rms = (_rms_difference(same_alpha[0], spring[0], plan.frames)
+                      if same_alpha and spring and same_alpha[0].name in baked and spring[0].name in baked
+                      else float("nan"))
+        plant_size = float(max(plants[0].dimensions))
 
     result = DemoResult(out_dir=str(out), blend=str(blend), contact_sheet=str(sheet),
                         field_pictures=[str(f) for f in fields], objects=[str(p) for p in sorted(objects_dir.glob("*.glb"))],
                         bakes=[asdict(b) for b in bakes], failed=failed, alpha_difference=difference,
+                        solver_difference=solver_rms, solver_difference_over_size=solver_rms / plant_size,
                         seconds=round(time.perf_counter() - t_start, 1), stage_seconds=stages.seconds,
                         checkpoint=str(ckpt), plan=plan.name)
     from .atomic_io import write_json
 
     write_json(out / SUMMARY_NAME, result.to_dict())
     say(f"Done in {result.seconds:.0f} s.  The α = {plan.plant_alphas[0]:g} and α = {plan.plant_alphas[-1]:g} MPM "
-        f"plants differ by up to {100 * difference:.1f} cm.")
+        f"plants differ by up to {100 * difference:.1f} cm; at α = {plan.spring_alpha:g} the MPM and spring-mass "
+        f"plants' motions differ by {1000 * solver_rms:.1f} mm RMS ({100 * solver_rms / plant_size:.1f} % of the "
+        "plant's size).")
     for f in failed:
         say(f"  FAILED: {f['object']} ({f['solver']}): {f['error']}")
     say(f"  Blender file:    {blend}  (open it, press Space to play; the UniPixie panel shows every step done)")
@@ -445,8 +462,8 @@ class KernelWarmUp:
     exactly the kernels a bake launches get compiled; :meth:`ready` holds a bake back until its solver's kernels
     are done.  A failure here is ignored (the bake compiles then)."""
 
-    SOLVERS = ("mpm", "lbs", "spring_mass")
-    """In the order of the demo's bakes (:data:`BAKE_ORDER`)."""
+    SOLVERS = BAKE_ORDER
+    """In the order of the demo's bakes."""
 
     def __init__(self, device: str = "cpu"):
         import threading
@@ -543,6 +560,16 @@ def _max_displacement(obj, frames: int) -> float:
     rest = evaluated_positions(obj, 1)
     return float(max(np.linalg.norm(evaluated_positions(obj, f) - rest, axis=1).max()
                      for f in range(2, int(frames) + 1)))
+
+
+def _rms_difference(a, b, frames: int) -> float:
+    """RMS (m, over vertices and frames 2..frames) of the difference between two baked copies' displacements."""
+    from .blender_io.bake import evaluated_positions
+
+    ra, rb = evaluated_positions(a, 1), evaluated_positions(b, 1)
+    sq = [np.mean(np.sum(((evaluated_positions(a, f) - ra) - (evaluated_positions(b, f) - rb)) ** 2, axis=1))
+          for f in range(2, int(frames) + 1)]
+    return float(np.sqrt(np.mean(sq))) if sq else float("nan")
 
 
 def _alpha_difference(a, b, frames: int) -> float:

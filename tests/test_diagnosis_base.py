@@ -115,3 +115,10 @@ def test_drop_on_a_damped_floor_fits_the_contact_in_the_base(tmp_path):
     assert doc["resolution"]["enforce_floor"] and not doc["resolution"]["used_finer"]
     html = (tmp_path / "diagnosis.html").read_text()
     assert "Ground contact fitted with E/ρ" in html and "Resolution check" in html
+
+
+def test_default_solver_is_the_most_faithful_the_device_affords():
+    from unipixie.core.diagnosis import diagnose
+
+    assert diagnose.default_solver("cpu") == "spring_mass"
+    assert diagnose.default_solver("cuda") == diagnose.default_solver("cuda:1") == "mpm"

@@ -78,8 +78,9 @@ def load_measurement(args):
 def add_arguments(p):
     p.add_argument("measurement", type=existing_file, metavar="MEASUREMENT",
                    help="measurement file: .npz (unipixie.measurement/1) or .csv (t,id,x,y,z)")
-    p.add_argument("--solver", default="spring_mass", choices=("mpm", "lbs", "spring_mass"),
-                   help="solver that simulates the model (default: spring_mass, the fastest)")
+    p.add_argument("--solver", default="auto", choices=("auto", "mpm", "lbs", "spring_mass"),
+                   help="solver that simulates the model (default auto: the most faithful the device affords, "
+                        "mpm on a GPU, spring_mass on the CPU; docs/diagnosis.md)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for diagnosis.json, pictures and HTML")
     p.add_argument("--effects-on", nargs="*", default=[], metavar="EFFECT",
                    help="effects already on in the current model, e.g. linear_drag:c=0.2")
@@ -111,10 +112,13 @@ def run(args) -> int:
         raise UserError("--max-additions must be 0 or more")
     m = load_measurement(args)
     device = resolve_device(args.device)
+    solver = diagnose.default_solver(device) if args.solver == "auto" else args.solver
     cands = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates else None
     log = None if args.quiet else print
     with Progress(total=100, description="diagnose", show_bar=not args.quiet) as progress:
-        result = diagnose.diagnose(m, args.solver, out_dir=args.out, effects_on=args.effects_on, add=args.add,
+        if not args.quiet and args.solver == "auto":
+            print(f"solver: {solver} (the most faithful on {device} within the time limits; --solver to choose)")
+        result = diagnose.diagnose(m, solver, out_dir=args.out, effects_on=args.effects_on, add=args.add,
                                    max_additions=args.max_additions, device=device,
                                    settings=parse_settings(args.setting) or None, candidates=cands,
                                    parallel=args.parallel, allow_long=args.allow_long, progress=progress,

@@ -84,6 +84,19 @@ every environment with the smallest stable substep among them, and its time-inte
 deformation and contact; free flight is exact with its leapfrog stepping) then changes with the company a
 parameter set keeps, which breaks finite differences and comparisons.  Their environments run one per
 launch (on the CPU this costs nothing: the batched spring-mass kernel scales linearly with the environments)."""
+DEFAULT_SOLVER = {"cuda": "mpm", "cpu": "spring_mass"}
+"""The diagnosis's solver when none is chosen, per device kind: the most faithful one the device affords within
+the diagnosis's time limits (docs/fidelity.md, docs/diagnosis.md): on a GPU MPM (the drop's rebound +2 % against
+the independent referee, spring-mass +16 %, LBS +17 %; a full MPM diagnosis 22.5 s on an H100), on the CPU
+spring-mass (an MPM diagnosis there takes far past 2 minutes; spring-mass is the closer of the other two on the
+cantilevers' sag, −6/−7 % against LBS's −18/−19 %)."""
+
+
+def default_solver(device: str) -> str:
+    """:data:`DEFAULT_SOLVER` for ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:N"``)."""
+    return DEFAULT_SOLVER["cuda" if str(device).startswith("cuda") else "cpu"]
+
+
 DEFAULT_SETTINGS = {"spring_mass": {"anchors": 192}, "mpm": {"cells_across": 12, "viscous_cfl": 0.2}}
 """Solver settings of a diagnosis when none are given: coarser than the solvers' own defaults (2048
 spring-mass anchors, 32 MPM cells across), because a diagnosis runs hundreds of simulations
