@@ -64,7 +64,7 @@ from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_
 from .contact_fit import fit_base_contact
 from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
                   grid_search, levenberg_marquardt, uncertainty)
-from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution
+from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution, plain_settings
 
 REPORT_FORMAT = "unipixie.diagnosis/1"
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
@@ -1487,11 +1487,4 @@ def _contact_times(positions: np.ndarray, times: np.ndarray, ground: Optional[fl
 
 def _settings_dict(sim) -> dict:
     s = getattr(sim, "settings", None)
-    if s is not None and dataclasses.is_dataclass(s):
-        out = {}
-        for f in dataclasses.fields(s):
-            v = getattr(s, f.name)
-            if isinstance(v, (int, float, str, bool)) or v is None:
-                out[f.name] = v
-        return out
-    return {}
+    return plain_settings(s) if s is not None and dataclasses.is_dataclass(s) else {}

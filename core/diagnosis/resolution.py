@@ -124,7 +124,8 @@ def _f(x):
     return x if math.isfinite(x) else None
 
 
-def _plain(s) -> dict:
+def plain_settings(s) -> dict:
+    """The scalar fields (numbers, strings, flags, None) of a solver's settings dataclass, by name."""
     out = {}
     for f in dataclasses.fields(s):
         v = getattr(s, f.name)
@@ -159,7 +160,7 @@ def check_resolution(P, model_effects: list, prepare, sigma: float, remaining_ru
     level = noise_rmse(sigma)
     check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
                             predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
-                            settings=_plain(P.sim.settings), finer=_plain(fine_settings),
+                            settings=plain_settings(P.sim.settings), finer=plain_settings(fine_settings),
                             difference=diff if np.all(np.isfinite(diff)) else None)
     use = None
     if floor <= level:
