@@ -157,6 +157,65 @@ def test_armature_from_lbs_handles_after_reload_and_fallback(blender, tmp_path):
     assert _max_error(bio, obj, traj, range(1, T + 1), 1) < TOL
 
 
+_WRITES_BESIDE_A_THREAD = r"""
+import faulthandler, sys, threading
+import numpy as np
+import bpy
+faulthandler.enable()
+from unipixie.core import bake
+from unipixie.core.blender_io import bake as bio
+from unipixie.core.blender_io.render import _depsgraph_of
+from unipixie.core.blender_io.scene_import import loaded_objects
+from unipixie.core.types import Trajectory
+
+stop = threading.Event()
+
+def busy():                       # stands for a bake's simulation thread: plain Python, all the time
+    while not stop.is_set():
+        {i: str(i) for i in range(500)}
+
+threading.Thread(target=busy, daemon=True).start()
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.15, location=(0.0, 0.0, 0.5))
+obj = bpy.context.active_object
+T = 3
+for i in range(int(sys.argv[2])):
+    bo = bio.read_object(obj)
+    n = len(bo.rest_world)
+    W = np.ones((n, 2))                                  # one handle and the constant one (last)
+    HT = np.zeros((T, 2, 3, 4)); HT[:, 1, :, :3] = np.eye(3); HT[:, 0, 2, 3] = -0.01 * np.arange(T)
+    pos = bo.rest_world[None] + HT[:, 0, :, 3][:, None, :]
+    traj = Trajectory(np.arange(T) / 24, pos, solver="lbs", handle_transforms=HT)
+    gen = bio.write_result(obj, bo, bake.SimulationResult(traj, skinning_weights=W),
+                           bake.BakeOptions(solver="lbs", frames=(1, T)))
+    while True:
+        try:
+            next(gen)
+        except StopIteration as done:
+            assert done.value.mode == "armature", done.value.mode
+            break
+    bio.clear_bake(obj)
+    with loaded_objects(sys.argv[1]) as objects:       # an importer, into a temporary scene
+        assert len(_depsgraph_of(objects[0]).objects) >= 1
+stop.set()
+print("written", i + 1)
+"""
+
+
+def test_bake_writes_and_imports_while_another_python_thread_runs(tmp_path):
+    """Blender 5.0 crashes when an operator runs under a context override while another Python thread runs
+    (core/blender_io/context_safety.py); the armature writer (edit mode), the importer and the temporary
+    scene's depsgraph run here beside a busy thread, in a child process so a crash fails only this test."""
+    pytest.importorskip("bpy")
+    mesh = tmp_path / "tetra.obj"
+    mesh.write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nv 0 0 0.1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    script = tmp_path / "writes.py"
+    script.write_text(_WRITES_BESIDE_A_THREAD)
+    proc = subprocess.run([sys.executable, str(script), str(mesh), "30"], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0 and "written 30" in proc.stdout, (proc.returncode, proc.stderr[-3000:])
+
+
 # --------------------------------------------------------------------------- real solvers
 def test_spring_mass_bake_end_to_end_with_ground_and_reload(blender, tmp_path):
     bpy = blender

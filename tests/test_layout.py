@@ -71,3 +71,15 @@ def test_every_subpackage_is_listed_in_pyproject(repo_root):
 def test_layout_directories_exist(repo_root):
     for name in ("blender_manifest.toml", "__init__.py", "unipixie_addon", "core", "solvers", "training", "tests"):
         assert (repo_root / name).exists(), name
+
+
+def test_package_never_uses_a_context_override(repo_root):
+    """``bpy.context.temp_override`` around an operator crashes Blender 5.0 while another Python thread runs
+    (:mod:`unipixie.core.blender_io.context_safety`); the package's bakes and warm-ups always have such threads."""
+    offenders = []
+    for rel, path in _package_files(repo_root):
+        tree = ast.parse(path.read_text(), filename=rel)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr == "temp_override":
+                offenders.append(f"{rel}:{node.lineno}")
+    assert not offenders, f"context overrides in the package (use core/blender_io/context_safety.py): {offenders}"

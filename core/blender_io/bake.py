@@ -36,6 +36,7 @@ from .. import bake as core_bake
 from ..bake import (BAKE_RECORD_KEY, BakeJob, BakeObject, BakeOptions, FieldFileSource, HomogeneousSource, ModelSource,
                     SimulationResult)
 from ..errors import UserError
+from .context_safety import active_and_selected
 from ..progress import Progress, silent
 
 PREFIX = "UniPixie"
@@ -435,19 +436,19 @@ def write_mesh_cache(obj, local: np.ndarray, frames: np.ndarray, interpolation: 
 # --------------------------------------------------------------------------- armature (LBS)
 @contextlib.contextmanager
 def _edit_mode(arm_obj):
-    view_layer = bpy.context.view_layer
-    prev_active = view_layer.objects.active
+    """Edit mode on ``arm_obj`` (to add its bones) as the view layer's active object; the previous mode,
+    active object and selection are restored after.  No context override (see
+    :mod:`unipixie.core.blender_io.context_safety`: the bake's simulation thread may still be running)."""
+    prev_active = bpy.context.view_layer.objects.active
     prev_mode = prev_active.mode if prev_active is not None else "OBJECT"
     if prev_active is not None and prev_mode != "OBJECT":
         bpy.ops.object.mode_set(mode="OBJECT")
-    view_layer.objects.active = arm_obj
-    with bpy.context.temp_override(active_object=arm_obj, object=arm_obj, edit_object=arm_obj):
+    with active_and_selected(arm_obj):
         bpy.ops.object.mode_set(mode="EDIT")
         try:
             yield
         finally:
             bpy.ops.object.mode_set(mode="OBJECT")
-    view_layer.objects.active = prev_active
 
 
 def _add_ground_lift(obj, bo: BakeObject, ground_height: float, record: WriteRecord) -> None:

@@ -21,6 +21,7 @@ import bpy
 import numpy as np
 
 from ..errors import UserError
+from .context_safety import active_and_selected
 from .scene_import import quiet_blender_output
 
 
@@ -57,8 +58,7 @@ def import_solid(glb_path, name: str):
             bpy.data.objects.remove(o)
     base = meshes[0]
     if len(meshes) > 1:
-        with bpy.context.temp_override(active_object=base, object=base, selected_objects=meshes,
-                                       selected_editable_objects=meshes):
+        with active_and_selected(base, meshes):   # no context override: see .context_safety
             bpy.ops.object.join()
     base.name = base.data.name = name
     bm = bmesh.new()

@@ -112,8 +112,10 @@ def _depsgraph_of(obj):
     if context.view_layer is not None and context.view_layer.objects.get(obj.name) == obj:
         return context.evaluated_depsgraph_get()
     for scene in obj.users_scene:
-        with context.temp_override(scene=scene, view_layer=scene.view_layers[0]):
-            return bpy.context.evaluated_depsgraph_get()
+        # the scene's own view layer, evaluated in place: no context override (see .context_safety)
+        view_layer = scene.view_layers[0]
+        view_layer.update()          # creates and evaluates the view layer's depsgraph
+        return view_layer.depsgraph
     raise UserError(f"object {obj.name!r} is in no scene; link it to a scene to render it")
 
 

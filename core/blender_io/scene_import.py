@@ -22,6 +22,7 @@ from pathlib import Path
 import bpy
 
 from ..errors import UserError
+from .context_safety import selection_kept
 
 MESH_FILE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
 SUPPORTED_SUFFIXES = MESH_FILE_SUFFIXES + (".blend",)
@@ -129,14 +130,15 @@ def loaded_objects(path, object_name: str | None = None):
         else:
             before = set(bpy.data.objects)
             try:
-                with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0],
-                                               collection=scene.collection), quiet_blender_output():
+                # into the current scene (no context override: see .context_safety), then moved to the temporary one
+                with selection_kept(), quiet_blender_output():
                     result = _importer(suffix)(filepath=str(path))
             except RuntimeError as exc:
                 raise UserError(f"{path}: Blender could not import it: {str(exc).strip().splitlines()[-1]}") from None
+            objects = [o for o in bpy.data.objects if o not in before]
+            _move_to_scene(objects, scene)
             if "FINISHED" not in result:
                 raise UserError(f"{path}: Blender's {suffix} importer failed ({', '.join(sorted(result))})")
-            objects = [o for o in bpy.data.objects if o not in before]
             if object_name:
                 chosen = [o for o in objects if o.name == object_name]
                 if not chosen:
@@ -146,6 +148,14 @@ def loaded_objects(path, object_name: str | None = None):
             if not objects:
                 raise UserError(f"{path}: the file holds no objects")
         yield geometry_objects(objects)
+
+
+def _move_to_scene(objects, scene) -> None:
+    """Unlink ``objects`` from every collection they are in and link them to ``scene``'s master collection."""
+    for o in objects:
+        for collection in list(o.users_collection):
+            collection.objects.unlink(o)
+        scene.collection.objects.link(o)
 
 
 def _append_from_blend(path: Path, object_name: str | None, scene) -> list:
