@@ -54,6 +54,36 @@ def _activate(bpy, obj):
     obj.select_set(True)
 
 
+def _draw_calls(bpy) -> list:
+    """The main panel's draw() through a stand-in layout that records ("prop" | "operator" | "label", name)
+    and checks every property and operator it is given exists."""
+    from unipixie.unipixie_addon.panels import VIEW3D_PT_unipixie
+
+    calls = []
+
+    class Layout:
+        def __getattr__(self, name):
+            if name in ("row", "column", "box"):
+                return lambda *a, **k: self
+            raise AttributeError(name)
+
+        def prop(self, data, name, **kw):
+            assert name in data.bl_rna.properties, name
+            calls.append(("prop", name))
+
+        def operator(self, idname, **kw):
+            mod, op = idname.split(".")
+            assert hasattr(getattr(bpy.ops, mod), op), idname
+            calls.append(("operator", idname))
+            return SimpleNamespace()
+
+        def label(self, text="", **kw):
+            calls.append(("label", text))
+
+    VIEW3D_PT_unipixie.draw(SimpleNamespace(layout=Layout()), bpy.context)
+    return calls
+
+
 # --------------------------------------------------------------------------- the whole panel, in order
 def test_every_panel_operator_in_order_leaves_its_data(panel):
     bpy = panel
@@ -125,7 +155,6 @@ def test_every_panel_operator_in_order_leaves_its_data(panel):
 def test_run_all_from_nothing_and_draw(panel):
     bpy = panel
     from unipixie.core.blender_io import bake as bio
-    from unipixie.unipixie_addon.panels import VIEW3D_PT_unipixie
 
     obj = _rod(bpy, "Fresh")
     s = obj.unipixie
@@ -134,28 +163,7 @@ def test_run_all_from_nothing_and_draw(panel):
     assert _states(obj) == ["done"] * 4 and bio.bake_record(obj)["material_source"] == {"source": "model"}
 
     # draw() lays out existing properties and operators only (recorded by a stand-in layout)
-    calls = []
-
-    class Layout:
-        def __getattr__(self, name):
-            if name in ("row", "column", "box"):
-                return lambda *a, **k: self
-            raise AttributeError(name)
-
-        def prop(self, data, name, **kw):
-            assert name in data.bl_rna.properties, name
-            calls.append(("prop", name))
-
-        def operator(self, idname, **kw):
-            mod, op = idname.split(".")
-            assert hasattr(getattr(bpy.ops, mod), op), idname
-            calls.append(("operator", idname))
-            return SimpleNamespace()
-
-        def label(self, text="", **kw):
-            calls.append(("label", text))
-
-    VIEW3D_PT_unipixie.draw(SimpleNamespace(layout=Layout()), bpy.context)
+    calls = _draw_calls(bpy)
     labels = [c[1] for c in calls if c[0] == "label"]
     assert labels.count("done") == 4
     assert ("operator", "unipixie.run_all") in calls and ("prop", "alpha") in calls
@@ -164,6 +172,21 @@ def test_run_all_from_nothing_and_draw(panel):
 
 
 # --------------------------------------------------------------------------- the α slider
+def test_panel_states_the_chosen_solvers_measured_floor(panel):
+    bpy = panel
+    from unipixie.core.solver_fidelity import floor_lines
+
+    obj = _rod(bpy, "Floor")
+    _activate(bpy, obj)
+    shown = {}
+    for solver in ("lbs", "spring_mass", "mpm"):
+        obj.unipixie.solver = solver
+        labels = [c[1] for c in _draw_calls(bpy) if c[0] == "label"]
+        shown[solver] = [t.strip() for t in labels if t.strip() in floor_lines(solver)]
+        assert shown[solver] == floor_lines(solver), solver
+    assert "static bending sag -19 %" in shown["lbs"] and "drop rebound height +17 %" in shown["lbs"]
+
+
 def test_alpha_slider_recolours_from_the_sweep_in_under_50_ms_with_a_monotone_legend(panel, tmp_path):
     bpy = panel
     from unipixie.core import pipeline as core

@@ -2,7 +2,8 @@
 
 The main panel shows the pipeline's four steps in order — each a button with its state (done / stale /
 not done / running, and why a step is stale) — *Run all*, the α slider with *Refine at this α* and
-the material-field switch, the solver, the effects with their parameters, the device and the frame
+the material-field switch, the solver (with its measured departures from the continuum at its bake
+defaults, :mod:`unipixie.core.solver_fidelity`), the effects with their parameters, the device and the frame
 range.  The Features, Simulate & bake and Diagnose sub-panels hold the detailed options.
 
 ``draw()`` functions only lay out properties and operators; every state they show is computed by
@@ -16,6 +17,7 @@ import bpy
 
 from ..core import pipeline as core
 from ..core.blender_io.scene_import import GEOMETRY_TYPES
+from ..core.solver_fidelity import floor_lines
 from .properties import EFFECT_PANEL_PARAMS
 
 STATE_ICONS = {core.DONE: "CHECKMARK", core.STALE: "FILE_REFRESH", core.NOT_DONE: "RADIOBUT_OFF",
@@ -72,6 +74,12 @@ class VIEW3D_PT_unipixie(bpy.types.Panel):
                 box.label(text=s.field_summary)
 
             layout.row().prop(s, "solver", expand=True)
+            floor = floor_lines(s.solver)       # what this solver gets wrong at its defaults, measured
+            if floor:
+                col = layout.column(align=True)
+                col.label(text=floor[0], icon="INFO")
+                for line in floor[1:]:
+                    col.label(text=f"    {line}")
             layout.prop(s, "bake_material_source")
 
             box = layout.box()
