@@ -6,7 +6,7 @@ never imports ``bpy``: only :func:`register` does, through
 :mod:`.unipixie_addon`.
 """
 
-__version__ = "0.1.0"
+from .core import __version__  # noqa: F401 - the version lives in core (below everything that prints it)
 
 
 def register():

@@ -48,7 +48,7 @@ import numpy as np
 
 from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
-from . import annotation as ann_mod
+from ..core import annotation as ann_mod
 from .oracle import REFERENCES, OracleSettings, oracle_predictions
 
 REPORT_FORMAT = "unipixie.evaluation/1"
