@@ -277,7 +277,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     from .blender_io import demo_scene as ds
     from .blender_io import pipeline as pio
     from .blender_io.bake import registered_properties
-    from .features import run_side_by_side
+    from .jobs import run_side_by_side
     from .pipeline import PipelineSettings
 
     plan = QUICK if quick else FULL

@@ -257,7 +257,7 @@ class Renderer:
         self.extractor  # noqa: B018
         from ..core.blender_io import render
         from ..core.blender_io.scene_import import loaded_objects
-        from ..core.features import run_job
+        from ..core.jobs import run_job
 
         s = self.settings
         rs = render.RenderSettings(view_count=s.views, resolution=s.render_resolution, engine=s.engine,

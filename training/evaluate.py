@@ -425,7 +425,7 @@ def render_frames(obj, frames: dict, frame_box: np.ndarray, out_dir: Path, setti
 
     from ..core.blender_io import render
     from ..core.blender_io.scene_import import loaded_objects
-    from ..core.features import run_job
+    from ..core.jobs import run_job
 
     out_dir.mkdir(parents=True, exist_ok=True)
     rs = render.RenderSettings(view_count=settings.render_views, resolution=settings.render_resolution,
