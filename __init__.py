@@ -3,10 +3,24 @@
 Outside Blender this directory is the Python package ``unipixie``; inside
 Blender (4.2+) it is the extension ``bl_ext.<repo>.unipixie``.  Importing it
 never imports ``bpy``: only :func:`register` does, through
-:mod:`.unipixie_addon`.
+:mod:`.unipixie_addon`.  It sits above every layer (docs/DEVELOPING.md, Map): it hands core the way
+to register the add-on's object properties (:mod:`.core.property_registration`).
 """
 
-__version__ = "0.1.0"
+from .core import __version__  # noqa: F401 - the version lives in core (below everything that prints it)
+from .core import property_registration as _property_registration
+
+
+def _register_object_properties():
+    """Register the add-on's object properties alone (for core.blender_io outside an enabled add-on); returns
+    the function that unregisters them."""
+    from .unipixie_addon import properties
+
+    properties.register()
+    return properties.unregister
+
+
+_property_registration.set_registrar(_register_object_properties)
 
 
 def register():

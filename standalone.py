@@ -1,7 +1,7 @@
 """Running a module of the checkout as a plain file, without the package installed.
 
 ``training/train.py`` (also in torchrun's file form), ``training/baselines.py``, ``training/pack.py`` and
-``core/benchmarks/model.py`` must run as files from a bare checkout on a machine that has only torch,
+``training/benchmarks/model.py`` must run as files from a bare checkout on a machine that has only torch,
 numpy and safetensors.  A file run that way belongs to no package, so its relative imports would fail;
 each of them therefore starts with (``parents[2]`` one folder deeper)::
 

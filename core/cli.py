@@ -1,9 +1,11 @@
 """The ``unipixie`` command line.
 
-Subcommands live one per module in :mod:`unipixie.core.commands`; each module
-defines ``NAME``, ``HELP`` (one line), ``EXAMPLES`` (shown by ``--help``),
-``add_arguments(parser)`` and ``run(args) -> int``.  Modules are discovered
-automatically and must stay light at import time (heavy imports go inside
+Subcommands live one per module in a layer's ``commands`` package (:mod:`unipixie.core.commands`; the
+root command line, :mod:`unipixie.cli`, adds :mod:`unipixie.training.commands`, which core never imports);
+each module defines ``NAME``, ``HELP`` (one line), ``EXAMPLES`` (shown by ``--help``),
+``add_arguments(parser)`` and ``run(args) -> int`` (a module with ``LAYERED = True`` gets
+``add_arguments(parser, layers)``: the bench command, whose benchmarks live in each layer's ``benchmarks``
+package).  Modules are discovered automatically and must stay light at import time (heavy imports go inside
 ``run``), so ``unipixie --help`` is instant.
 
 User errors (:class:`~unipixie.core.errors.UserError`, bad arguments) print
@@ -31,7 +33,7 @@ import time
 import traceback
 from typing import Sequence
 
-from .. import __version__
+from . import __version__
 from .errors import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_INTERNAL_ERROR, UserError
 
 
@@ -42,20 +44,43 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def _command_modules():
-    from . import commands
+CORE_LAYERS = ("core",)
+"""The layers (subpackages of ``unipixie``) whose commands this module's :func:`main` offers by default;
+:mod:`unipixie.cli` passes ``("core", "training")``."""
 
-    mods = []
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
-        if info.name.startswith("_"):
+
+def layer_modules(layers: Sequence[str], kind: str) -> dict:
+    """``{name: dotted module}`` of the modules in each layer's ``kind`` package (``commands``, ``benchmarks``)
+    that exists, private (``_``) ones left out; a name in two layers is an error (a bug)."""
+    found = {}
+    for layer in layers:
+        package_name = f"{__package__.rpartition('.')[0]}.{layer}.{kind}"
+        try:
+            package = importlib.import_module(package_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != package_name:
+                raise
             continue
-        mod = importlib.import_module(f"{commands.__name__}.{info.name}")
+        for info in pkgutil.iter_modules(package.__path__):
+            if info.name.startswith("_"):
+                continue
+            if info.name in found:
+                raise RuntimeError(f"{kind} module {info.name!r} is in two layers: {found[info.name]}, {package_name}")
+            found[info.name] = f"{package_name}.{info.name}"
+    return found
+
+
+def _command_modules(layers: Sequence[str] = CORE_LAYERS):
+    mods = []
+    for name, dotted in sorted(layer_modules(layers, "commands").items()):
+        mod = importlib.import_module(dotted)
         if hasattr(mod, "NAME") and hasattr(mod, "run"):
             mods.append(mod)
     return mods
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(layers: Sequence[str] = CORE_LAYERS) -> argparse.ArgumentParser:
+    """The parser of the commands of ``layers`` (see :data:`CORE_LAYERS`)."""
     parser = _Parser(
         prog="unipixie",
         description="UniPixie: look at a 3D object and give it physics (features, material prediction, "
@@ -66,11 +91,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"unipixie {__version__}")
     parser.add_argument("--cache-dir", metavar="DIR", help="cache directory (default: $UNIPIXIE_CACHE_DIR or ~/.cache/unipixie)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for mod in _command_modules():
+    for mod in _command_modules(layers):
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP,
                            epilog=("examples:\n" + mod.EXAMPLES) if getattr(mod, "EXAMPLES", "") else None,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
-        mod.add_arguments(p)
+        if getattr(mod, "LAYERED", False):
+            mod.add_arguments(p, layers)
+        else:
+            mod.add_arguments(p)
         p.set_defaults(_run=mod.run, _parser=p)
     return parser
 
@@ -83,9 +111,10 @@ def _argv_from_environment() -> list[str]:
     return argv[1:]
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit status (also used as ``SystemExit`` code by the script)."""
-    parser = build_parser()
+def main(argv: Sequence[str] | None = None, layers: Sequence[str] = CORE_LAYERS) -> int:
+    """Run the command line of ``layers``' commands; returns the exit status (also used as ``SystemExit`` code
+    by the script).  The ``unipixie`` script is :func:`unipixie.cli.main` (every layer's commands)."""
+    parser = build_parser(layers)
     args = parser.parse_args(_argv_from_environment() if argv is None else list(argv))
     if getattr(args, "cache_dir", None):
         from .paths import set_cache_root
@@ -175,5 +204,8 @@ def interrupt_guard(prefix: str = "unipixie"):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def entry_point() -> None:  # pragma: no cover - console script
+def entry_point() -> None:  # pragma: no cover - console script of installs made before unipixie.cli:entry_point
+    """Core's commands only: the ``unipixie`` script of an install older than the layered command line (which
+    pointed here).  Re-installing (``setup.sh``: ``pip install -e .``) points the script at
+    :func:`unipixie.cli.entry_point`, every layer's commands."""
     sys.exit(main())

@@ -2,7 +2,7 @@
 
 What it does (every step prints where it is and shows progress; Ctrl-C stops it):
 
-1. Builds two procedural objects of the dataset (:mod:`unipixie.training.procedural`): a **potted
+1. Builds two procedural objects of the dataset (:mod:`unipixie.core.procedural`): a **potted
    plant** and a **rubber duck**, as textured ``.glb`` files, and imports each into an empty Blender
    scene as one closed mesh (parts united), with a ground plane, a camera and labels.
 2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
@@ -172,7 +172,7 @@ def max_wave_speed(field_world) -> float:
     """Largest elastic wave speed (m/s) of the simulated, not held material of a world-space MaterialField:
     sqrt(M / ρ) with M the P-wave modulus (bulk modulus for weakly compressible classes)."""
     from ..solvers import materials
-    from ..training.ground_truth import p_wave_factor
+    from ..solvers.materials import p_wave_factor
 
     mat = np.asarray(field_world.material, np.int64)
     moving = np.array([c.simulated and not c.held_fixed for c in materials.MATERIAL_CLASSES])[mat]
@@ -272,12 +272,12 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
     stiff for the demo's substep limit) is reported and recorded in the summary (``failed``); the other
     bakes and the pictures are still made.
     """
-    from ..training import procedural
+    from . import procedural
     from .bake import MODEL_HEADS
     from .blender_io import demo_scene as ds
     from .blender_io import pipeline as pio
     from .blender_io.bake import registered_properties
-    from .features import run_side_by_side
+    from .jobs import run_side_by_side
     from .pipeline import PipelineSettings
 
     plan = QUICK if quick else FULL

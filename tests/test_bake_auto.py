@@ -35,7 +35,7 @@ def test_readme_bake_line_works_on_a_fresh_blend_and_reuses_the_cache(blender, t
     """README's line with the shipped model on a .blend with nothing precomputed (the MPM grid kept coarse,
     8 cells across, so that the test stays short on a CPU)."""
     bpy = blender
-    from unipixie.core import cli
+    from unipixie import cli
     from unipixie.core.blender_io import bake as bio
     from unipixie.core.blender_io import pipeline as pio
     from unipixie.core.pipeline import DONE, PipelineSettings

@@ -599,7 +599,7 @@ def test_bake_through_the_installed_extension_module(blender, tmp_path):
 
 
 def test_bench_bake_runs_and_times_simulation_and_writing(blender, tmp_path):
-    from unipixie.core import cli
+    from unipixie import cli
 
     out = tmp_path / "bake.json"
     assert cli.main(["bench", "bake", "--frames", "3", "--subdivisions", "1", "--solvers", "spring_mass",

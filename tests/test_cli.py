@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from unipixie.core import cli
+from unipixie import cli
 
 
 def _run(*args):

@@ -17,9 +17,9 @@ pytest.importorskip("bpy")
 pytest.importorskip("open_clip")
 import torch._dynamo  # noqa: E402,F401
 
-from unipixie.core.cli import main as cli  # noqa: E402
+from unipixie.cli import main as cli  # noqa: E402
 from unipixie.core.errors import UserError  # noqa: E402
-from unipixie.training import annotation as A  # noqa: E402
+from unipixie.core import annotation as A  # noqa: E402
 from unipixie.training import dataset as D  # noqa: E402
 from unipixie.training import pack  # noqa: E402
 from unipixie.training.sample_format import TrainingSample, list_samples  # noqa: E402

@@ -29,7 +29,7 @@ def _picture(path):
 def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_checkpoint, capsys):
     pytest.importorskip("bpy")
     from unipixie.core import demo
-    from unipixie.core.cli import main
+    from unipixie.cli import main
 
     out = tmp_path / "demo"
     assert main(["demo", "--quick", "--out", str(out), "--checkpoint", str(tiny_checkpoint)]) == 0
@@ -87,7 +87,7 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
 
 def test_demo_command_errors_are_one_line(tmp_path, monkeypatch, capsys, tiny_checkpoint):
     from unipixie.core import pipeline
-    from unipixie.core.cli import main
+    from unipixie.cli import main
 
     monkeypatch.setattr(pipeline, "default_checkpoint", lambda: tmp_path / "models" / "default")
     assert main(["demo", "--quick", "--out", str(tmp_path / "d")]) == 2

@@ -127,7 +127,7 @@ def test_no_hidden_effect_gives_null(tmp_path):
 
 def test_report_matches_the_spec_and_has_pictures(tmp_path):
     """The CLI end to end: measure synth → diagnose → diagnosis.json (spec keys), pictures, one HTML page."""
-    from unipixie.core import cli
+    from unipixie import cli
 
     mpath = tmp_path / "wind.npz"
     assert cli.main(["measure", "synth", "--out", str(mpath), "--effect", "wind:acceleration=0,0.6,0",

@@ -57,7 +57,7 @@ def test_install_enable_and_run_operator(built_zip, tmp_path):
 
 
 def test_build_extension_command(tmp_path):
-    from unipixie.core import cli
+    from unipixie import cli
 
     assert cli.main(["build-extension", "--out-dir", str(tmp_path)]) == 0
     assert (tmp_path / f"unipixie-{extension.manifest()['version']}.zip").is_file()

@@ -223,7 +223,7 @@ def test_blend_files_need_an_object_name_when_they_hold_several(blender, tmp_pat
 def test_features_command_writes_grid_and_pictures(blender, tmp_path, capsys, no_clip_env):
     import trimesh
 
-    from unipixie.core.cli import main
+    from unipixie.cli import main
     from unipixie.core.types import FeatureGrid, Views
 
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=1.0)

@@ -1,6 +1,6 @@
 """The independent FEM simulator (training/independent_fem.py) against analytic answers, and its files.
 
-The simulator makes the measurements the diagnosis is validated on (core/diagnosis/validate.py), so its
+The simulator makes the measurements the diagnosis is validated on (training/validate_diagnosis.py), so its
 physics is checked here on its own: free fall, a clamped bar's axial period, linear-drag decay, the Coulomb
 stopping distance, the Kelvin–Voigt decay rate and undamped rigid motion, and the measurement file it
 writes read back by the project's loader.  Small meshes: the whole file runs in well under a minute.
@@ -192,7 +192,7 @@ def test_bad_input_is_a_user_error(bad, match):
 
 
 def test_validation_cases_are_well_formed():
-    from unipixie.core.diagnosis import validate
+    from unipixie.training import validate_diagnosis as validate
 
     cases = validate.cases()
     assert len({c.name for c in cases}) == len(cases)

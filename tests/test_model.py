@@ -285,7 +285,7 @@ def test_predict_sweep_is_cached_and_refine_matches_exact(tmp_path):
 
 
 def test_predict_command(tmp_path):
-    from unipixie.core.cli import main
+    from unipixie.cli import main
 
     save_model(_model(), tmp_path / "ck")
     gpath = _grid().save(tmp_path / "grid.npz")

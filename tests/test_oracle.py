@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from unipixie.core.errors import UserError
-from unipixie.training import annotation as A
+from unipixie.core import annotation as A
 from unipixie.training import oracle as O
-from unipixie.training import procedural as P
+from unipixie.core import procedural as P
 
 R = 12
 

@@ -45,7 +45,7 @@ def _settings(ckpt, **kw):
 
 
 def _run(job):
-    from unipixie.core.features import run_job
+    from unipixie.core.jobs import run_job
 
     return run_job(job)
 
@@ -348,7 +348,7 @@ def test_jobs_side_by_side_share_the_cores_keep_order_and_errors(tmp_path):
     thread runs while the others are polled; results in order, an error in one job leaves the others going."""
     from unipixie.core.bake import BackgroundRun
     from unipixie.core.errors import CancelledError
-    from unipixie.core.features import run_side_by_side
+    from unipixie.core.jobs import run_side_by_side
     from unipixie.core.progress import Progress
 
     def job(k, seconds=0.3, fail=False):

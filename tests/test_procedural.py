@@ -1,4 +1,4 @@
-"""Procedural objects and range annotations (training/procedural.py, training/annotation.py)."""
+"""Procedural objects and range annotations (core/procedural.py, core/annotation.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from unipixie.core.errors import UserError
-from unipixie.training import annotation as A
-from unipixie.training import procedural as P
+from unipixie.core import annotation as A
+from unipixie.core import procedural as P
 
 SIZE_RANGE_M = {  # largest extent a real object of the class has (generous bounds), metres
     "potted_plant": (0.2, 1.3), "sport_ball": (0.05, 0.3), "stuffed_toy": (0.08, 0.7), "rubber_duck": (0.05, 0.3),

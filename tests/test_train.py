@@ -12,7 +12,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from unipixie.core.cli import main
+from unipixie.cli import main
 from unipixie.core.errors import UserError
 from unipixie.core.model.checkpoint import TRAINING_JSON, is_checkpoint
 from unipixie.training.sample_format import (SAMPLE_FORMAT, TrainingSample, data_fingerprint, list_samples)

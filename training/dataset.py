@@ -8,7 +8,7 @@ Layout of a dataset directory (everything per object, so shards never write the 
       dataset.json, CARD.md      the dataset card (counts per class, ranges, split, settings, timings)
       samples/<id>.npz           the training sample (training/sample_format.py, unipixie.training_sample/1)
       objects/<id>/object.glb    the mesh: one named node + textured material per part (y-up glTF)
-      objects/<id>/annotation.json   per-part ranges and constraints (training/annotation.py)
+      objects/<id>/annotation.json   per-part ranges and constraints (core/annotation.py)
       objects/<id>/labels.npz    part id of every occupied voxel, part names, normalisation
       objects/<id>/ground_truth.npz  MPM motions at α = 0, 1 (and 0.5 for test objects), fitted LBS and
                                  spring-mass parameters, tracked vertices (see :func:`save_ground_truth`)
@@ -39,7 +39,7 @@ import numpy as np
 
 from ..core.errors import CancelledError, UserError, read_json
 from ..core.progress import Progress
-from . import annotation as ann_mod
+from ..core import annotation as ann_mod
 from .ground_truth import GroundTruthSettings
 
 BUILD_FORMAT = "unipixie.dataset_build/1"
@@ -257,7 +257,7 @@ class Renderer:
         self.extractor  # noqa: B018
         from ..core.blender_io import render
         from ..core.blender_io.scene_import import loaded_objects
-        from ..core.features import run_job
+        from ..core.jobs import run_job
 
         s = self.settings
         rs = render.RenderSettings(view_count=s.views, resolution=s.render_resolution, engine=s.engine,
@@ -287,7 +287,8 @@ def _check_normalisation(views, norm) -> None:
 def build_object(root: Path, index: int, settings: BuildSettings, renderer: Renderer,
                  progress: Optional[Progress] = None) -> dict:
     """Build object ``index`` into ``root`` (all files, record.json last); returns its record."""
-    from . import ground_truth, procedural
+    from . import ground_truth
+    from ..core import procedural
 
     timings: dict = {}
     t = time.perf_counter()
@@ -397,7 +398,7 @@ def build(root, count: int, settings: BuildSettings | None = None, shard: tuple[
     and the build goes on; ``retry_failed`` builds failed objects again.  Cancelling stops after the
     current stage; the unfinished object is built again next time.
     """
-    from . import procedural
+    from ..core import procedural
 
     root = Path(root)
     settings = init_build(root, settings or BuildSettings())
@@ -635,7 +636,7 @@ class DatasetDir:
 
     def object(self, object_id: str):
         """The object itself (parts, annotation, scenario): regenerated for a procedural build (deterministic)."""
-        from . import procedural
+        from ..core import procedural
 
         rec = self.record(object_id)
         if self.settings is None or rec.get("index") is None:

@@ -48,7 +48,7 @@ import numpy as np
 
 from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
-from . import annotation as ann_mod
+from ..core import annotation as ann_mod
 from .oracle import REFERENCES, OracleSettings, oracle_predictions
 
 REPORT_FORMAT = "unipixie.evaluation/1"
@@ -425,7 +425,7 @@ def render_frames(obj, frames: dict, frame_box: np.ndarray, out_dir: Path, setti
 
     from ..core.blender_io import render
     from ..core.blender_io.scene_import import loaded_objects
-    from ..core.features import run_job
+    from ..core.jobs import run_job
 
     out_dir.mkdir(parents=True, exist_ok=True)
     rs = render.RenderSettings(view_count=settings.render_views, resolution=settings.render_resolution,

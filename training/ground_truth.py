@@ -51,7 +51,8 @@ from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress
 from ..core.types import Trajectory
 from ..solvers import materials
-from . import annotation as ann_mod
+from ..solvers.materials import p_wave_factor
+from ..core import annotation as ann_mod
 
 GROUND_TRUTH_VERSION = 1
 """Bumped when the ground-truth protocol changes (recorded in every object's record)."""
@@ -131,15 +132,6 @@ class GroundTruthSettings:
 
 
 # =========================================================================== the simulated solid
-def p_wave_factor(nu: np.ndarray, material_ids: np.ndarray) -> np.ndarray:
-    """Modulus that sets the solver's wave speed, per unit E: (1−ν)/((1+ν)(1−2ν)) (P-wave), or
-    1/(3(1−2ν)) (bulk) for weakly compressible classes.  Shapes broadcast."""
-    nu = np.asarray(nu, np.float64)
-    weak = np.array([c.elasticity == "weakly_compressible" for c in materials.MATERIAL_CLASSES])[
-        np.asarray(material_ids, np.int64)]
-    return np.where(weak, 1.0 / (3.0 * (1.0 - 2.0 * nu)), (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu)))
-
-
 @dataclass
 class Solid:
     """What the three solvers simulate for one object (world metres).

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.errors import UserError
-from . import annotation as ann_mod
+from ..core import annotation as ann_mod
 
 ORACLE = "oracle_appearance"
 ORACLE_MIDPOINT = "oracle_appearance_midpoint"
@@ -91,7 +91,7 @@ def generator_codes(annotation) -> tuple[str, str, dict]:
     Raises :class:`UserError` if the annotation was not written by :mod:`.procedural` or if the
     regenerated object's ranges differ from the stored ones (another generator version).
     """
-    from . import procedural
+    from ..core import procedural
 
     meta = annotation.meta or {}
     if "index" not in meta or "seed" not in meta:

@@ -17,7 +17,7 @@ Blender data:
 * :func:`bake_steps` — the whole bake as a generator of ``(fraction, status)`` for the modal
   operator (the simulation runs in a worker thread; closing the generator cancels it and removes
   anything half-written); :func:`bake_object` runs it to the end (Python API);
-  :func:`run_jobs` opens scenes, bakes and saves (command line and farms).
+  :func:`unipixie.core.blender_io.bake_jobs.run_jobs` opens scenes, bakes and saves (command line and farms).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import bpy
 import numpy as np
 
 from .. import bake as core_bake
+from .. import property_registration
 from ..bake import (BAKE_RECORD_KEY, BakeJob, BakeObject, BakeOptions, FieldFileSource, HomogeneousSource, ModelSource,
                     SimulationResult)
 from ..errors import UserError
@@ -125,18 +126,17 @@ def registered_properties():
     """Make ``Object.unipixie`` available (registering the add-on's properties for the duration if needed).
 
     The command line runs bpy without the add-on; its properties are still stored in the .blend and
-    become readable once the property group is registered.
+    become readable once the property group is registered.  The property group is the add-on's, above core:
+    the package root hands core the way to register it (:mod:`unipixie.core.property_registration`).
     """
     if hasattr(bpy.types.Object, "unipixie"):
         yield
         return
-    from ...unipixie_addon import properties
-
-    properties.register()
+    unregister = property_registration.registrar()()
     try:
         yield
     finally:
-        properties.unregister()
+        unregister()
 
 
 def _mesh_object(scene, obj, role: str):
@@ -1003,107 +1003,6 @@ def blend_object_names(path) -> list[str]:
     except (OSError, ValueError) as exc:
         raise UserError(f"{path}: not a readable .blend file ({exc})") from None
     return names
-
-
-def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print,
-             allow_long: bool = False, auto: bool = True) -> list[BakeReport]:
-    """Run bake jobs: for each (scene, out) group open the scene, bake its objects, save ``out``.
-
-    Object names may be shell wildcards (resolved in the opened scene).  PC2 caches go to
-    ``<out stem>_unipixie/`` next to ``out`` and are referenced relative to it.  Before any simulation
-    every output is checked (not an input, also through links; writable, with room) and locked against
-    a second run writing it at the same time; each ``.blend`` is saved atomically and verified
-    (:func:`~unipixie.core.blender_io.blend_file.save_blend`).  allow_long: run jobs whose up-front cost
-    estimate passes the long-job limit (:mod:`unipixie.core.cost`).
-
-    Jobs whose material is the model at α without a feature-grid file get the object's own prediction
-    (:func:`~unipixie.core.blender_io.pipeline.prepare_model_material`): ``auto`` runs whatever the object
-    lacks first — render views, features, the prediction at the jobs' α values — with the panel's steps, cache
-    and feature recipe, logging each step with its time; ``auto=False`` computes nothing and refuses an object
-    without a current recorded prediction.
-    """
-    from ..atomic_io import check_writable, locked
-    from .blend_file import save_blend
-
-    progress = progress or silent()
-    reports: list[BakeReport] = []
-    groups = core_bake.group_jobs(jobs)
-    core_bake.check_job_outputs(jobs)
-    for group in groups:  # before any simulation: every output can be written
-        scene_path = Path(group[0].scene)
-        if not scene_path.is_file():
-            raise UserError(f"scene file not found: {scene_path}")
-        if scene_path.suffix.lower() != ".blend":
-            raise UserError(f"{scene_path}: the scene must be a .blend file")
-        out = Path(group[0].out)
-        if out.suffix.lower() != ".blend":
-            raise UserError(f"{out}: the output must be a .blend file")
-        check_writable(out, 2 * scene_path.stat().st_size, what="output")
-    with locked([g[0].out for g in groups], what="output"):
-        for group in groups:
-            scene_path = Path(group[0].scene)
-            out = Path(group[0].out)
-            bpy.ops.wm.open_mainfile(filepath=str(scene_path.resolve()))
-            with registered_properties():
-                scene = bpy.context.scene
-                names = [o.name for o in bpy.data.objects]
-                planned = []
-                for job in group:
-                    for name in core_bake.select_objects([job.object], names):
-                        obj = bpy.data.objects[name]
-                        j = BakeJob(**{**job.__dict__, "object": name})
-                        options, scenario = options_for_job(j, obj, scene)
-                        options.allow_long = bool(allow_long)
-                        planned.append((obj, j, options, scenario))
-                fingerprints = _prepare_model_materials(planned, auto, log)
-                for obj, j, options, scenario in planned:
-                    log(f"baking {j.describe()}")
-                    sub = progress.sub(1.0, 1.0, obj.name)
-                    rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
-                    for n in rep.notes:
-                        log(f"  note: {n}")
-                    log(f"  {rep.summary()}")
-                    if obj.name in fingerprints:
-                        from .pipeline import note_bake
-
-                        note_bake(obj, options, fingerprints[obj.name])
-                    reports.append(rep)
-                save_blend(out)
-                log(f"saved {out}")
-    return reports
-
-
-def _prepare_model_materials(planned, auto: bool, log) -> dict:
-    """For the planned ``(obj, job, options, scenario)`` whose material is the model without a feature-grid file:
-    the object's prediction at the jobs' α values with the heads their solvers need (one pass per object).
-    Returns ``{object name: fingerprint}`` of the objects prepared."""
-    from ..pipeline import PipelineSettings, cuda_available
-    from . import pipeline as pio
-
-    wanted: dict = {}
-    for obj, job, options, _ in planned:
-        src = options.material
-        if src.kind != "model" or src.features:
-            continue
-        device = str(job.device or "cpu")
-        if device == "auto":
-            device = "cuda" if cuda_available() else "cpu"
-        key = (src.checkpoint or "", int(src.seed), device)
-        w = wanted.setdefault(obj.name, {"obj": obj, "key": key, "alphas": set(), "heads": set()})
-        if w["key"] != key:
-            raise UserError(f"object '{obj.name}' is baked with two different model checkpoints, seeds or devices in "
-                            "one output file; bake them into separate files")
-        w["alphas"].add(float(options.alpha))
-        w["heads"].update(core_bake.MODEL_HEADS[options.solver])
-    fingerprints = {}
-    for name, w in wanted.items():
-        checkpoint, seed, device = w["key"]
-        heads = tuple(h for h in ("mpm", "lbs", "spring_mass") if h in w["heads"])
-        settings = PipelineSettings(checkpoint=checkpoint, seed=seed, device=device, heads=heads,
-                                    alphas=tuple(sorted(w["alphas"]))).with_model_recipe()
-        log(f"model material of '{name}' (α {', '.join(f'{a:g}' for a in sorted(w['alphas']))}):")
-        fingerprints[name] = pio.prepare_model_material(w["obj"], settings, log=log, compute=auto)
-    return fingerprints
 
 
 def time_writes(bo: BakeObject, result: SimulationResult, options: BakeOptions, modes: Sequence[str],

@@ -12,7 +12,7 @@ The Blender-free logic (settings, records, staleness, the α sweep, the model's 
 * :func:`states` — every step's :class:`~unipixie.core.pipeline.StepState`.
 * :func:`render_step`, :func:`features_step`, :func:`predict_step`, :func:`refine_step`,
   :func:`bake_step`, :func:`run_all` — job generators yielding ``(fraction, status)`` (the add-on's
-  modal operators drive them; :func:`unipixie.core.features.run_job` runs one to its end).  Each
+  modal operators drive them; :func:`unipixie.core.jobs.run_job` runs one to its end).  Each
   records what it produced only when it finishes; closing a generator (Esc) leaves the record as it was.
 """
 
@@ -436,7 +436,7 @@ def note_bake(obj, options, fingerprint_value: str) -> None:
 
 def run_to_end(job, progress=None):
     """Drive a step generator to its end (command line, demo, tests); ``progress`` may cancel."""
-    from ..features import run_job
+    from ..jobs import run_job
 
     return run_job(job, progress)
 

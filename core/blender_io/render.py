@@ -39,9 +39,10 @@ import bpy
 import numpy as np
 
 from ..errors import UserError
-from ..features import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
+from ..jobs import run_job
 from ..lift import camera_rig, look_at_origin
 from ..normalise import Normalisation
+from ..render_defaults import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
 from ..types import Views
 from .scene_import import geometry_objects, quiet_blender_output, remove_new_ids, snapshot_ids
 
@@ -559,8 +560,6 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
 def render_views(objects, settings: RenderSettings | None = None, progress=None) -> Views:
     """Render the subject's views to the end (see :func:`render_job`); ``progress`` gets a step per view
     and can cancel."""
-    from ..features import run_job
-
     return run_job(render_job(objects, settings), progress)
 
 

@@ -229,7 +229,7 @@ def run(args) -> int:
     if not mine_jobs:
         print(f"{tag}nothing to do ({len(groups)} output file(s) for {args.shard[1] if args.shard else 1} shard(s))")
         return 0
-    from ..blender_io.bake import run_jobs
+    from ..blender_io.bake_jobs import run_jobs
 
     with Progress(total=len(mine_jobs), description="bake") as progress:
         reports = run_jobs(mine_jobs, progress=progress, allow_long=args.allow_long, auto=not args.no_auto)

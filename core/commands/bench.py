@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib
-import pkgutil
 
 NAME = "bench"
 HELP = "run a benchmark (mpm, lbs, spring, features, model, diagnose, bake) and record benchmarks/<name>.json"
@@ -12,16 +11,22 @@ EXAMPLES = """  unipixie bench mpm --device cpu
   unipixie bench model --device cuda"""
 
 
-def _benchmarks():
-    from .. import benchmarks
-
-    return {i.name: f"{benchmarks.__name__}.{i.name}" for i in pkgutil.iter_modules(benchmarks.__path__)
-            if not i.name.startswith("_")}
+LAYERED = True  # add_arguments gets the command line's layers: each may have a `benchmarks` package
 
 
-def add_arguments(p):
+def _benchmarks(layers=None):
+    """``{name: dotted module}`` of the benchmarks in the layers' ``benchmarks`` packages
+    (:mod:`unipixie.core.benchmarks`; ``bench model`` is in :mod:`unipixie.training.benchmarks`)."""
+    from ..cli import CORE_LAYERS, layer_modules
+
+    return layer_modules(layers or CORE_LAYERS, "benchmarks")
+
+
+def add_arguments(p, layers=None):
+    benchmarks = _benchmarks(layers)
+    p.set_defaults(bench_modules=benchmarks)
     sub = p.add_subparsers(dest="bench_name", metavar="NAME", required=True)
-    for name, modname in sorted(_benchmarks().items()):
+    for name, modname in sorted(benchmarks.items()):
         mod = importlib.import_module(modname)
         sp = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         sp.add_argument("--no-record", action="store_true", help="print only; do not write benchmarks/<name>.json")
@@ -32,7 +37,7 @@ def add_arguments(p):
 def run(args) -> int:
     from .. import benchmarks
 
-    mod = importlib.import_module(_benchmarks()[args.bench_name])
+    mod = importlib.import_module((getattr(args, "bench_modules", None) or _benchmarks())[args.bench_name])
     results = mod.run(args)
     benchmarks.print_table(results)
     if not args.no_record:

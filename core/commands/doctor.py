@@ -19,7 +19,7 @@ def run(args) -> int:
     import tempfile
 
     from .. import deps, extension, paths
-    from ... import __version__
+    from .. import __version__
 
     print(f"unipixie {__version__}  (Python {platform.python_version()}, {platform.system()} {platform.machine()})")
     report = deps.check()

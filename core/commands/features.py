@@ -50,7 +50,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from ..errors import UserError
-    from ..features import FeatureOptions, features_file_job, run_job, save_feature_slices, save_view_sheet
+    from ..features import FeatureOptions, features_file_job, save_feature_slices, save_view_sheet
+    from ..jobs import run_job
     from ..progress import Progress
     from ..types import Views
 

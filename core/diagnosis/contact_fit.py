@@ -28,7 +28,8 @@ import numpy as np
 from ...solvers import effects as fx
 from ..progress import Progress
 from . import significance as sig
-from .fit import FitResult, Parametrisation, base_param, free_params_for, grid_search, levenberg_marquardt
+from .fit import (BASE_SCALE_BOUNDS, FitResult, Parametrisation, base_param, free_params_for, grid_search,
+                  levenberg_marquardt)
 
 NAME = "contact_damping"
 PRIOR_DECADES = 2.0
@@ -112,7 +113,6 @@ def fit_contact(P, scale: float, e_prior_width: float, sse_rigid: float, materia
     prior of width ``e_prior_width``); sse_rigid: that fit's squared error (m²); material: the stated material (mean E and
     density); height: the solid's vertical extent (m).  Returns a :class:`ContactFit`; the caller adopts it.
     """
-    from .diagnose import BASE_SCALE_BOUNDS  # a constant only (no cycle at import time)
 
     E = material.mean_E() * scale
     rho = material.mean_density()

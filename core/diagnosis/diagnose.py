@@ -62,9 +62,9 @@ from . import verdict as verdict_mod
 from .batching import BatchGate
 from .compare import Comparison, compare, estimate_noise, kmeans_regions, noise_rmse, region_box
 from .contact_fit import fit_base_contact
-from .fit import (BASE, FitResult, FreeParam, Parametrisation, base_param, e_prior_width, free_params_for,
-                  grid_search, levenberg_marquardt, uncertainty)
-from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution, plain_settings
+from .fit import (BASE, BASE_SCALE_BOUNDS, FitResult, FreeParam, Parametrisation, base_param, e_prior_width,
+                  free_params_for, grid_search, levenberg_marquardt, uncertainty)
+from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution, half_step_settings, plain_settings
 
 REPORT_FORMAT = "unipixie.diagnosis/1"
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
@@ -73,9 +73,6 @@ DEFAULT_MAX_ADDITIONS = 3
 _SEPARATE_STARTS = ("material_damping",)
 """Effects whose start grid spans decades of the stable time step: each start runs in its own launch."""
 DEFAULT_REGION_CLUSTERS = 6
-BASE_SCALE_BOUNDS = (0.1, 10.0)
-"""Range of the E/ρ scale the base fit may use (a model "close to the truth" is within a factor of 10;
-a stiffer model also needs proportionally more time steps)."""
 REGION_FACTOR_BOUNDS = (0.1, 10.0)
 """Range of the stiffness factor of one region."""
 UNBATCHED_SOLVERS = ("spring_mass",)
@@ -1362,29 +1359,6 @@ def _holdout_jobs(P: _Problem, ref: _Reference, cands: Sequence[CandidateResult]
         return out
 
     return [refit(_param_for(ref, [], {}), None)] + [refit(c.parametrisation, c.fit.u) for c in cands], finish
-
-
-def half_step_settings(sim, settings):
-    """Solver settings with half the time step, or ``None`` when the solver exposes no time-step knob.
-
-    Looks for a settings field ``dt`` / ``substep_dt`` / ``time_step`` (halved), else the Courant-like
-    factors ``cfl`` / ``viscous_cfl`` / ``safety`` / ``courant`` (all present halved), else ``substeps``
-    (doubled).
-    """
-    s = getattr(sim, "settings", None)
-    if s is None or not dataclasses.is_dataclass(s):
-        return None
-    names = {f.name for f in dataclasses.fields(s)}
-    for key in ("dt", "substep_dt", "time_step", "max_dt"):
-        if key in names and getattr(s, key) is not None:
-            return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
-    courant = {key: getattr(s, key) * 0.5 for key in ("cfl", "viscous_cfl", "safety", "courant")
-               if key in names and getattr(s, key) is not None}
-    if courant:  # every limit of the step at once (MPM: the wave-speed and the viscous limit)
-        return dataclasses.replace(s, **courant)
-    if "substeps" in names and getattr(s, "substeps") is not None:
-        return dataclasses.replace(s, substeps=int(getattr(s, "substeps")) * 2)
-    return None
 
 
 def _half_step_sim(P: _Problem, settings, measurement, material, body, frame_times, device: str):

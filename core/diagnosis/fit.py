@@ -341,6 +341,11 @@ def _default_typical(p: fx.Param) -> float:
     return 1.0
 
 
+BASE_SCALE_BOUNDS = (0.1, 10.0)
+"""Range of the E/ρ scale the base fit may use (a model "close to the truth" is within a factor of 10;
+a stiffer model also needs proportionally more time steps)."""
+
+
 def base_param(lower: float = 0.05, upper: float = 20.0, center: float = 1.0,
                prior_width: float = math.log(10.0)) -> FreeParam:
     """The base material's E/ρ scale as a free log parameter with a prior at ``center``.

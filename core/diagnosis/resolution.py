@@ -44,11 +44,32 @@ REFINE = {"anchors": 2.0, "cells_across": 1.5, "cells_across_thinnest": 1.5, "cu
 """Factor applied to each resolution setting a solver exposes (integer settings rounded)."""
 
 
+def half_step_settings(sim, settings):
+    """Solver settings with half the time step, or ``None`` when the solver exposes no time-step knob.
+
+    Looks for a settings field ``dt`` / ``substep_dt`` / ``time_step`` (halved), else the Courant-like
+    factors ``cfl`` / ``viscous_cfl`` / ``safety`` / ``courant`` (all present halved), else ``substeps``
+    (doubled).
+    """
+    s = getattr(sim, "settings", None)
+    if s is None or not dataclasses.is_dataclass(s):
+        return None
+    names = {f.name for f in dataclasses.fields(s)}
+    for key in ("dt", "substep_dt", "time_step", "max_dt"):
+        if key in names and getattr(s, key) is not None:
+            return dataclasses.replace(s, **{key: getattr(s, key) * 0.5})
+    courant = {key: getattr(s, key) * 0.5 for key in ("cfl", "viscous_cfl", "safety", "courant")
+               if key in names and getattr(s, key) is not None}
+    if courant:  # every limit of the step at once (MPM: the wave-speed and the viscous limit)
+        return dataclasses.replace(s, **courant)
+    if "substeps" in names and getattr(s, "substeps") is not None:
+        return dataclasses.replace(s, substeps=int(getattr(s, "substeps")) * 2)
+    return None
+
+
 def finer_settings(sim) -> Optional[object]:
     """The settings of the prepared simulation ``sim`` refined in space (:data:`REFINE`) and time (half step), or
     ``None`` when the solver exposes neither."""
-    from .diagnose import half_step_settings
-
     s = getattr(sim, "settings", None)
     if s is None or not dataclasses.is_dataclass(s):
         return None

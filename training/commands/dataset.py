@@ -13,7 +13,7 @@ EXAMPLES = """  unipixie dataset build data/pmv --count 500                     
 
 
 def add_arguments(p):
-    from . import _common
+    from ...core.commands import _common
 
     sub = p.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
     b = sub.add_parser("build", help="build objects 0..N-1 of this shard (finished objects are skipped)",
@@ -72,7 +72,7 @@ def add_arguments(p):
 
 
 def _gt_settings(args):
-    from ...training.ground_truth import GroundTruthSettings
+    from ..ground_truth import GroundTruthSettings
 
     if args.tiny_ground_truth:
         return GroundTruthSettings(frames=6, cells_across=6, min_particles=100, tracked_points=64, spring_anchors=32,
@@ -85,12 +85,12 @@ def _gt_settings(args):
 
 
 def run(args) -> int:
-    from ..errors import UserError
+    from ...core.errors import UserError
 
     action = args.dataset_command
     if action == "build":
-        from ...training import dataset
-        from ..progress import Progress
+        from .. import dataset
+        from ...core.progress import Progress
 
         try:
             split = tuple(float(x) for x in args.split.split(","))
@@ -119,14 +119,14 @@ def run(args) -> int:
             print(f"  failed: {oid} (see {args.out}/objects/{oid}/record.json)")
         return 1 if summary["failed"] else 0
     if action == "card":
-        from ...training import dataset
+        from .. import dataset
 
         card = dataset.write_card(args.dir)
         print(f"{card['objects']} objects ({', '.join(f'{k} {v}' for k, v in card['split_counts'].items())}), "
               f"{card['failed']} failed; wrote {args.dir}/CARD.md, dataset.json, split.json")
         return 0
     if action == "pack":
-        from ...training import pack
+        from .. import pack
 
         splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
         info = pack.write_pack(args.dir, args.out, part_bytes=int(args.part_mb * 1e6), splits=splits)
@@ -134,7 +134,7 @@ def run(args) -> int:
               f"({info['bytes'] / max(info['objects'], 1) / 1e3:.0f} kB per object) in {args.out}")
         return 0
     if action == "unpack":
-        from ...training import pack
+        from .. import pack
 
         n = pack.unpack(args.pack, args.out)
         print(f"wrote {n} training samples and split.json to {args.out}")

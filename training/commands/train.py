@@ -11,13 +11,13 @@ EXAMPLES = """  unipixie train --data dataset/ --out runs/base --steps 20000 --b
 
 
 def add_arguments(p):
-    from ...training.train import add_arguments as training_arguments
+    from ..train import add_arguments as training_arguments
 
     training_arguments(p)
 
 
 def run(args) -> int:
-    from ...training.train import report, settings_from_args, train
+    from ..train import report, settings_from_args, train
 
     settings = settings_from_args(args)
     stats = train(settings)

@@ -3,7 +3,7 @@
 The diagnosis is judged on data from simulators it never sees.  This harness generates such
 data with :mod:`unipixie.training.independent_fem` (linear-tetrahedral FEM, RK4, penalty contact —
 no code shared with the project's solvers), one measurement per case (noise σ = 1 mm, 10 %
-occlusions, the measurement spec's file), runs :func:`.diagnose.diagnose` the way a user would
+occlusions, the measurement spec's file), runs :func:`~unipixie.core.diagnosis.diagnose.diagnose` the way a user would
 (the CLI's defaults unless told otherwise) and records for every case:
 
 * the hidden effect (or none) and what was identified; the hidden effect's rank and verdict;
@@ -14,8 +14,8 @@ occlusions, the measurement spec's file), runs :func:`.diagnose.diagnose` the wa
 
 ::
 
-    python -m unipixie.core.diagnosis.validate --out validation/            # the whole matrix, spring-mass
-    python -m unipixie.core.diagnosis.validate --cases none_throw,linear_drag_throw --solver mpm \
+    python -m unipixie.training.validate_diagnosis --out validation/            # the whole matrix, spring-mass
+    python -m unipixie.training.validate_diagnosis --cases none_throw,linear_drag_throw --solver mpm \
         --device cuda --out validation-mpm/
 
 Measurements are cached in ``OUT/measurements`` (regenerated when a case's definition changes);
@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import UserError
+from ..core.errors import UserError
 
 NOISE = 0.001
 OCCLUSION = 0.1
@@ -46,7 +46,7 @@ OCCLUSION = 0.1
 def cases() -> list:
     """The validation matrix: every spec effect at a moderate strength in a scenario where it is observable,
     and cases without a hidden effect (including a stated material that is 25 % off)."""
-    from ...training.independent_fem import Case
+    from .independent_fem import Case
 
     common = dict(noise=NOISE, occlusion=OCCLUSION)
     bar = dict(shape="bar", scenario="clamped", E=5.0e5, spacing=0.02, duration=0.6, fps=50.0)
@@ -86,7 +86,7 @@ QUICK = ("none_throw", "quadratic_drag_throw", "damping_drop")
 
 
 def _case_key(case) -> str:
-    from ...training import independent_fem
+    from . import independent_fem
 
     src = Path(independent_fem.__file__).read_bytes()
     blob = json.dumps(asdict(case), sort_keys=True, default=str).encode() + hashlib.sha1(src).digest()
@@ -95,7 +95,7 @@ def _case_key(case) -> str:
 
 def measurement_for(case, cache_dir: Path, log=print) -> Path:
     """The case's measurement file (generated once per case definition and simulator version)."""
-    from ...training.independent_fem import make_case
+    from .independent_fem import make_case
 
     cache_dir.mkdir(parents=True, exist_ok=True)
     path = cache_dir / f"{case.name}-{_case_key(case)}.npz"
@@ -131,8 +131,8 @@ def _param_error(fitted: dict, truth: dict, name: str, rest: np.ndarray, found_p
 def run_case(case, solver: str = "spring_mass", *, cache_dir: Path, out_dir: Optional[Path] = None,
              settings=None, device: str = "cpu", max_additions: int = 3, log=print, **diagnose_kwargs) -> dict:
     """Generate (or reuse) ``case``'s measurement, diagnose it, and return the record (see the module docstring)."""
-    from .. import measurement as measurement_mod
-    from . import diagnose
+    from ..core import measurement as measurement_mod
+    from ..core.diagnosis import diagnose
 
     path = measurement_for(case, cache_dir, log)
     m = measurement_mod.load(path)
@@ -255,9 +255,9 @@ def main(argv=None) -> int:
 
 
 def _main(argv=None) -> int:
-    from ..commands.diagnose import parse_settings
+    from ..core.commands.diagnose import parse_settings
 
-    p = argparse.ArgumentParser(prog="python -m unipixie.core.diagnosis.validate",
+    p = argparse.ArgumentParser(prog="python -m unipixie.training.validate_diagnosis",
                                 description="diagnose measurements made by an independent FEM simulator")
     p.add_argument("--out", default="validation", help="output directory (measurements, reports, results)")
     p.add_argument("--cases", help="comma-separated case names (default: all); 'quick' for a small subset")

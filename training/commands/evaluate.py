@@ -11,7 +11,7 @@ EXAMPLES = """  unipixie evaluate models/default --data data/pmv --split test --
 
 
 def add_arguments(p):
-    from . import _common
+    from ...core.commands import _common
 
     p.add_argument("checkpoint", metavar="CHECKPOINT",
                    help="UniPixie checkpoint directory (config.json + model.safetensors); 'none' for baselines only")
@@ -45,8 +45,8 @@ def add_arguments(p):
 def run(args) -> int:
     from pathlib import Path
 
-    from ..errors import UserError
-    from ..progress import Progress
+    from ...core.errors import UserError
+    from ...core.progress import Progress
 
     try:
         alphas = tuple(float(a) for a in args.alphas.split(","))
@@ -64,7 +64,7 @@ def run(args) -> int:
 
         if importlib.util.find_spec("bpy") is None:
             raise UserError("the PSNR/SSIM renders need Blender's 'bpy' module; install it or pass --render-frames 0")
-    from ...training.evaluate import EvalSettings, evaluate
+    from ..evaluate import EvalSettings, evaluate
 
     settings = EvalSettings(alphas=alphas, split=args.split, device=args.device, solver_device=args.solver_device,
                             seed=args.seed, max_objects=args.max_objects, simulate_objects=args.simulate_objects,
@@ -72,7 +72,7 @@ def run(args) -> int:
                             render_views=args.render_views, render_resolution=args.render_resolution,
                             mean_prediction=not args.no_mean_prediction, oracle=not args.no_oracle,
                             oracle_draws=args.oracle_draws)
-    from ...training.dataset import DatasetDir
+    from ..dataset import DatasetDir
 
     n = len(DatasetDir(args.data).ids(args.split))
     n = min(n, args.max_objects) if args.max_objects else n

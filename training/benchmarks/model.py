@@ -21,7 +21,7 @@ if __package__ in (None, ""):  # run as a file with only torch + numpy + safeten
     import runpy
 
     runpy.run_path(str(Path(__file__).resolve().parents[2] / "standalone.py"))["import_checkout"]()
-    __package__ = "unipixie.core.benchmarks"
+    __package__ = "unipixie.training.benchmarks"
 
 TRAIN_SCRIPT = Path(__file__).resolve().parents[2] / "training" / "train.py"
 
@@ -51,7 +51,7 @@ def _device_name(dev) -> str:
 
 
 def _make_dataset(root: Path, resolution: int, voxels: int, feature_dim: int, anchors: int, count: int):
-    from ...training.synthetic import make_sample, procedural_occupancy
+    from ..synthetic import make_sample, procedural_occupancy
 
     occ = procedural_occupancy(resolution, voxels)
     root.mkdir(parents=True, exist_ok=True)
@@ -65,18 +65,18 @@ def run(args) -> list[dict]:
     import numpy as np
     import torch
 
-    from ..benchmarks import median_time
-    from ..model.config import preset
-    from ..model.inference import Predictor, resolve_torch_device
-    from ..model.layout import VoxelBatch
-    from ..model.network import UniPixieModel
-    from ..types import FeatureGrid, GridGeometry
-    from ...training.synthetic import procedural_occupancy
+    from ...core.benchmarks import median_time
+    from ...core.model.config import preset
+    from ...core.model.inference import Predictor, resolve_torch_device
+    from ...core.model.layout import VoxelBatch
+    from ...core.model.network import UniPixieModel
+    from ...core.types import FeatureGrid, GridGeometry
+    from ..synthetic import procedural_occupancy
 
     cases = {c.strip() for c in args.cases.split(",") if c.strip()}
     unknown = cases - {"mpm1", "all1", "all11", "train"}
     if unknown:
-        from ..errors import UserError
+        from ...core.errors import UserError
 
         raise UserError(f"unknown --cases {sorted(unknown)}; choose from mpm1, all1, all11, train")
     dev = resolve_torch_device(args.device)
@@ -134,7 +134,7 @@ def run(args) -> list[dict]:
     if "train" not in cases:
         return results
 
-    from ...training.train import TrainSettings, train
+    from ..train import TrainSettings, train
 
     steps = args.train_steps or (20 if gpu else 4)
     per_gpu = args.train_batch or (2 if gpu else 1)
@@ -172,12 +172,12 @@ def run(args) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    """``python core/benchmarks/model.py [--device cuda] ...`` — the same as ``unipixie bench model``."""
+    """``python training/benchmarks/model.py [--device cuda] ...`` — the same as ``unipixie bench model``."""
     import argparse
 
-    from . import print_table, record
+    from ...core.benchmarks import print_table, record
 
-    parser = argparse.ArgumentParser(prog="core/benchmarks/model.py", description=HELP)
+    parser = argparse.ArgumentParser(prog="training/benchmarks/model.py", description=HELP)
     parser.add_argument("--no-record", action="store_true", help="print only; do not write benchmarks/model.json")
     parser.add_argument("--out", metavar="JSON", help="write to this file instead of benchmarks/model.json")
     add_arguments(parser)

@@ -38,8 +38,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.errors import UserError
-from ..core.types import GridGeometry
+from .errors import UserError
+from .types import GridGeometry
 from . import annotation as ann_mod
 from .annotation import Annotation
 
@@ -190,7 +190,7 @@ class ProceduralObject:
         of parts thinner than a voxel); later parts overwrite earlier ones.
         Returns occupancy (R, R, R) bool and part_ids (K,) int16 in ``np.argwhere(occupancy)`` order.
         """
-        from ..core.lift import occupancy_from_mesh
+        from .lift import occupancy_from_mesh
 
         R = geometry.resolution
         label = np.full((R, R, R), -1, dtype=np.int16)

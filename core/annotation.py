@@ -42,7 +42,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..core.errors import UserError, read_json
+from .errors import UserError, read_json
 from ..solvers import materials
 
 ANNOTATION_FORMAT = "unipixie.annotation/1"
