@@ -4,10 +4,11 @@ Layout (all float32, structure of arrays):
 
 * particles: ``E`` environments × ``N`` particles, environment-major (particle ``p`` belongs to
   environment ``p // N``); positions ``x`` (m), velocities ``v`` (m/s), APIC affine velocity
-  ``C`` (1/s, the velocity gradient estimate), elastic deformation gradient ``F``, the rotation
-  of F's polar decomposition as a quaternion ``rot`` (warm start of the elastic fast path), one
-  plastic state scalar, mass (kg), rest volume (m³), Lamé ``mu``/``lam`` (Pa) and a ``code``
-  (material-class id + ``HELD_FLAG`` × held).
+  ``C`` (1/s, the velocity gradient estimate), the elastic displacement gradient ``H`` = F − I
+  (F the elastic deformation gradient; stored as H for precision), the rotation of F's polar
+  decomposition as a quaternion ``rot`` (warm start of the elastic fast path), one plastic state
+  scalar, mass (kg), rest volume (m³), Lamé ``mu``/``lam`` (Pa) and a ``code`` (material-class id
+  + ``HELD_FLAG`` × held).
 * grid: every environment owns a block of ``nx·ny·nz`` nodes (x-major, z fastest) whose world
   origin moves with the material (``env_origin``); nodes lie on one global lattice of pitch
   ``dx``, so moving the block changes nothing physical.
@@ -225,6 +226,20 @@ def particle_ground_impulse(xp: wp.vec3, vp: wp.vec3, m: float, p_wave_modulus: 
 
 # ------------------------------------------------------------------------------ substep kernels
 @wp.func
+def displacement_gradient_update(H: wp.mat33, G: wp.mat33):
+    """H ← H + G (I + H): the update F ← (I + G) F with G = Δt C, written for H = F − I.
+
+    Particles store H, not F: a substep's increment of F is about Δt · strain rate, 10⁻⁷–10⁻⁶ for a
+    slowly bending bar at a fine grid's time step, one to ten float32 units in the last place of
+    entries near 1.  Added to F, most of each increment is rounded away, and the rounding is not
+    symmetric (units in the last place are twice as large above 1 as below): a bar in sustained
+    bending crept downwards by about 1 mm per period (docs/fidelity.md).  H's entries are of the
+    strain's size, so the same increment keeps about seven significant digits.
+    """
+    return H + (G + G @ H)
+
+
+@wp.func
 def elastic_fixed_corotated(Fn: wp.mat33, q0: wp.quat, mu: float, lam: float):
     """Purely elastic fixed-corotated law without an SVD: (Kirchhoff stress Pa, rotation quaternion, J)."""
     q = rotation_part(Fn, q0)
@@ -294,37 +309,39 @@ def constitutive_update(law: ClassLaw, Fn: wp.mat33, q0: wp.quat, state: float, 
 
 
 @wp.func(inline=True)
-def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, F: wp.array(dtype=wp.mat33),
+def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, H: wp.array(dtype=wp.mat33),
                             rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
                             lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
                             env_eta: wp.array(dtype=float)):
     """Deformation update F ← (I + Δt C) F, the class's law and Kelvin–Voigt viscosity of one deforming particle.
 
-    Writes the particle's new F, rotation and plastic state; returns its Kirchhoff stress τ, Pa.
+    ``H`` holds each particle's displacement gradient H = F − I (see :func:`displacement_gradient_update`).
+    Writes the particle's new H, rotation and plastic state; returns its Kirchhoff stress τ, Pa.
     """
-    Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
+    Hn = displacement_gradient_update(H[p], dt * Cp)
+    Fn = wp.identity(n=3, dtype=float) + Hn
     tau, Fe, q, state, J = constitutive_update(law, Fn, rot[p], plastic[p], mu_p[p], lam_p[p], env_yield[env])
     plastic[p] = state
     eta = env_eta[env]
     if eta > 0.0:  # Kelvin-Voigt: Kirchhoff viscous stress J * 2 eta sym(grad v); zero for rigid motion
         tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
-    F[p] = Fe
+    H[p] = Hn + (Fe - Fn)  # exactly Hn where the law did not project F
     rot[p] = q
     return tau
 
 
 @wp.func(inline=True)
-def particle_stress_elastic(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, F: wp.array(dtype=wp.mat33),
+def particle_stress_elastic(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, H: wp.array(dtype=wp.mat33),
                             rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
                             lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
                             env_eta: wp.array(dtype=float)):
     """:func:`particle_stress_general` for the elastic fixed-corotated law only (same results for such particles)."""
-    Fn = (wp.identity(n=3, dtype=float) + dt * Cp) @ F[p]
-    tau, q, J = elastic_fixed_corotated(Fn, rot[p], mu_p[p], lam_p[p])
+    Hn = displacement_gradient_update(H[p], dt * Cp)
+    tau, q, J = elastic_fixed_corotated(wp.identity(n=3, dtype=float) + Hn, rot[p], mu_p[p], lam_p[p])
     eta = env_eta[env]
     if eta > 0.0:
         tau = tau + (J * eta) * (Cp + wp.transpose(Cp))
-    F[p] = Fn
+    H[p] = Hn
     rot[p] = q
     return tau
 
@@ -334,7 +351,7 @@ def _make_p2g(general: bool):
     registers on a GPU), for runs whose deforming material is all jelly without plasticity."""
 
     def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-            F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+            H: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
             mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
             lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
             env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
@@ -371,9 +388,9 @@ def _make_p2g(general: bool):
         tau = wp.mat33(0.0)
         if law.held == 0:
             if wp.static(general):
-                tau = particle_stress_general(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
             else:
-                tau = particle_stress_elastic(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
 
         affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
         vp = v[p]
@@ -710,12 +727,12 @@ def cell_keys(x: wp.array(dtype=wp.vec3), env_origin: wp.array(dtype=wp.vec3), n
 @wp.kernel
 def gather_particles(order: wp.array(dtype=wp.int32),
                      x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-                     F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+                     H: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
                      mass: wp.array(dtype=float),
                      vol: wp.array(dtype=float), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
                      code: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32),
                      x2: wp.array(dtype=wp.vec3), v2: wp.array(dtype=wp.vec3), C2: wp.array(dtype=wp.mat33),
-                     F2: wp.array(dtype=wp.mat33), rot2: wp.array(dtype=wp.quat), plastic2: wp.array(dtype=float),
+                     H2: wp.array(dtype=wp.mat33), rot2: wp.array(dtype=wp.quat), plastic2: wp.array(dtype=float),
                      mass2: wp.array(dtype=float),
                      vol2: wp.array(dtype=float), mu2: wp.array(dtype=float), lam2: wp.array(dtype=float),
                      code2: wp.array(dtype=wp.int32), pid2: wp.array(dtype=wp.int32)):
@@ -725,7 +742,7 @@ def gather_particles(order: wp.array(dtype=wp.int32),
     x2[i] = x[s]
     v2[i] = v[s]
     C2[i] = C[s]
-    F2[i] = F[s]
+    H2[i] = H[s]
     rot2[i] = rot[s]
     plastic2[i] = plastic[s]
     mass2[i] = mass[s]
@@ -738,7 +755,7 @@ def gather_particles(order: wp.array(dtype=wp.int32),
 
 @wp.kernel
 def scatter_state(pid: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                  F: wp.array(dtype=wp.mat33), plastic: wp.array(dtype=float), count: int,
+                  H: wp.array(dtype=wp.mat33), plastic: wp.array(dtype=float), count: int,
                   out_x: wp.array(dtype=wp.vec3), out_v: wp.array(dtype=wp.vec3), out_J: wp.array(dtype=float),
                   out_plastic: wp.array(dtype=float)):
     """Particle state of environment 0 in the original particle order (for baking)."""
@@ -747,5 +764,5 @@ def scatter_state(pid: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: 
     if q < count:
         out_x[q] = x[p]
         out_v[q] = v[p]
-        out_J[q] = wp.determinant(F[p])
+        out_J[q] = wp.determinant(wp.identity(n=3, dtype=float) + H[p])
         out_plastic[q] = plastic[p]

@@ -204,7 +204,7 @@ def _make_p2g(general: bool, scatter: str):
     aggregated = scatter == "warp"
 
     def p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-            F: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
+            H: wp.array(dtype=wp.mat33), rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float),
             mass: wp.array(dtype=float), vol: wp.array(dtype=float), mu_p: wp.array(dtype=float),
             lam_p: wp.array(dtype=float), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
             env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_yield: wp.array(dtype=float),
@@ -250,9 +250,9 @@ def _make_p2g(general: bool, scatter: str):
         tau = wp.mat33(0.0)
         if law.held == 0:
             if wp.static(general):
-                tau = particle_stress_general(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
             else:
-                tau = particle_stress_elastic(p, env, dt, law, Cp, F, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
 
         affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
         vp = v[p]
