@@ -565,3 +565,45 @@ def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
             proc.kill()
     assert proc.returncode == EXIT_CANCELLED
     assert "cleaning up" in err and err.strip().endswith("unipixie bake: cancelled") and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- found by the fault matrix (tests/fault_matrix)
+@pytest.mark.parametrize("argv, needle", [
+    (["--seed", "-1"], "--seed"),                      # was an internal error (numpy's ValueError)
+    (["--height", "-1"], "--height"),                  # was exit 0: the object started inside the ground
+    (["--velocity", "nan,0,0"], "--velocity"),         # was exit 3 "diverged" for a bad argument
+    (["--spin", "inf"], "--spin"),
+    (["--fps", "1e7"], "--allow-long"),                # 2,000,001 instants: was a silent hang
+    (["--duration", "1e6", "--fps", "1000"], "--allow-long"),  # was an internal error (a 312 GB allocation)
+])
+def test_synth_refuses_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
+    status = cli.main(["measure", "synth", "--out", str(tmp_path / "m.npz"), "--solver", "spring_mass",
+                       "--duration", "0.2", "--fps", "20", "--points", "30", *argv])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_deeply_nested_scenario_key_is_a_one_line_error(tmp_path, capsys):
+    m = _falling_cube()
+    m.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as d:
+        arrays = {k: d[k] for k in d.files}
+    arrays["scenario"] = np.array("[" * 100000 + "]" * 100000)
+    np.savez(tmp_path / "deep.npz", **arrays)
+    with pytest.raises(UserError, match="not valid JSON"):
+        load(tmp_path / "deep.npz")
+    with pytest.raises(UserError, match="not valid JSON"):
+        Scenario.from_json("[" * 100000 + "]" * 100000)
+    assert cli.main(["measure", "show", str(tmp_path / "deep.npz")]) == EXIT_BAD_INPUT
+    assert "internal error" not in capsys.readouterr().err
+
+
+def test_a_csv_with_a_byte_order_mark_reads_as_without(tmp_path):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    text = (tmp_path / "m.csv").read_text(encoding="utf-8")
+    (tmp_path / "bom.csv").write_text("\ufeff" + text, encoding="utf-8")
+    (tmp_path / "bom.json").write_text((tmp_path / "m.json").read_text())
+    back = load_csv(tmp_path / "bom.csv")
+    np.testing.assert_array_equal(back.positions, m.positions)
