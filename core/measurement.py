@@ -158,6 +158,9 @@ class Measurement:
             raise _fail(src, "key 'positions' contains infinite values (use NaN for unobserved points)")
         pos = pos.copy()
         pos[np.isnan(pos).any(axis=2)] = np.nan  # a sample is observed as a whole or not at all
+        if np.isnan(pos).all():
+            raise _fail(src, "key 'positions' holds no observed sample (every value is NaN): there is no measured "
+                             "motion to read")
         self.positions = pos
         # times ---------------------------------------------------------------------------
         t = _float_array(self.times, "times", src).reshape(-1) if np.ndim(self.times) <= 1 else None
@@ -167,7 +170,10 @@ class Measurement:
             raise _fail(src, f"key 'times' has {t.shape[0]} entries but 'positions' has {T} instants")
         if not np.all(np.isfinite(t)):
             raise _fail(src, "key 'times' contains NaN or infinite values")
-        if T > 1 and not np.all(np.diff(t) > 0):
+        if T < 2:
+            raise _fail(src, f"key 'times' holds {T} instant: a measurement of motion needs at least two "
+                             "(times[0] is the initial state)")
+        if not np.all(np.diff(t) > 0):
             i = int(np.argmax(~(np.diff(t) > 0)))
             raise _fail(src, f"key 'times' must be strictly increasing (times[{i}] = {t[i]:g} s, "
                              f"times[{i + 1}] = {t[i + 1]:g} s)")
@@ -601,6 +607,8 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
                 if not header_seen:
                     header_seen = True
                     cols = _csv_columns(row, src, lineno)
+                    named = cols is not None
+                    width = len(row)
                     if cols is not None:
                         ignored = [row[i] for i in range(len(row)) if i not in cols.values()]
                         if ignored:
@@ -612,6 +620,10 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
                     cols = {"t": 0, "id": 1, "x": 2, "y": 3, "z": 4}
                 if len(row) <= max(cols.values()):
                     raise UserError(f"{src}: line {lineno}: expected {max(cols.values()) + 1} columns, got {len(row)}")
+                if len(row) > width and any(c.strip() for c in row[width:]):
+                    raise UserError(f"{src}: line {lineno}: {len(row)} cells where the "
+                                    f"{'header names' if named else 'rows t,id,x,y,z have'} {width}: the row does "
+                                    "not belong to this table (a stray separator or a joined line)")
                 try:
                     t = float(row[cols["t"]])
                 except ValueError:
@@ -653,6 +665,9 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
         sdict, src_sc = dict(scenario), src
     else:
         sdict, src_sc = {"format": MEASUREMENT_FORMAT}, src
+        warnings.append(f"no scenario for this CSV (no {path.with_suffix('.json').name} beside it, no --scenario): "
+                        "the default is assumed — gravity (0, 0, -9.81) m/s², ground at z = 0 m, starting at rest, no "
+                        "clamp, no material stated")
     sidecar = sdict.pop(CSV_SIDECAR_KEY, None) if isinstance(sdict, dict) else None
     if sidecar is not None and not isinstance(sidecar, Mapping):
         raise UserError(f"{src_sc}: key '{CSV_SIDECAR_KEY}' must be a JSON object")
@@ -713,7 +728,8 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
     m = Measurement(positions=positions, times=times, scenario=sc, rest_positions=rest_positions, faces=faces,
                     material=material, source=src)
     m.warnings.extend(warnings)
-    m.extra_arrays["point_ids"] = np.asarray(keys)
+    if keys != [str(i) for i in range(len(keys))]:  # ids 0..N-1 are the positions themselves: nothing to keep
+        m.extra_arrays["point_ids"] = np.asarray(keys)
     return m
 
 

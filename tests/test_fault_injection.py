@@ -607,3 +607,90 @@ def test_a_csv_with_a_byte_order_mark_reads_as_without(tmp_path):
     (tmp_path / "bom.json").write_text((tmp_path / "m.json").read_text())
     back = load_csv(tmp_path / "bom.csv")
     np.testing.assert_array_equal(back.positions, m.positions)
+
+
+# --------------------------------------------------------------------------- no measurement without motion, no silent defaults
+def test_a_measurement_needs_two_instants_and_an_observed_sample():
+    m = _falling_cube()
+    with pytest.raises(UserError, match="at least two"):  # was accepted: `measure show` printed "valid"
+        Measurement(positions=m.positions[:1], times=m.times[:1], scenario=m.scenario, rest_positions=m.rest)
+    with pytest.raises(UserError, match="no observed sample"):  # was accepted: `measure convert` wrote it
+        Measurement(positions=m.positions * np.nan, times=m.times, scenario=m.scenario, rest_positions=m.rest)
+
+
+def test_a_csv_row_longer_than_its_header_is_refused(tmp_path):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    rows = (tmp_path / "m.csv").read_text().splitlines()
+    (tmp_path / "long.csv").write_text("\n".join(rows + ["0," * 2000]) + "\n")  # was read as t=0, id=0, x=y=z=0
+    (tmp_path / "long.json").write_text((tmp_path / "m.json").read_text())
+    with pytest.raises(UserError, match=f"line {len(rows) + 1}: 2001 cells where the header names 5"):
+        load_csv(tmp_path / "long.csv")
+    (tmp_path / "trail.csv").write_text("\n".join([rows[0]] + [r + "," for r in rows[1:]]) + "\n")
+    (tmp_path / "trail.json").write_text((tmp_path / "m.json").read_text())
+    np.testing.assert_array_equal(load_csv(tmp_path / "trail.csv").positions, m.positions)  # empty trailing cells
+
+
+def test_a_csv_without_scenario_says_the_default_it_assumes(tmp_path, capsys):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    (tmp_path / "m.json").unlink()
+    assert any("default is assumed" in w for w in load_csv(tmp_path / "m.csv").warnings)
+    assert cli.main(["measure", "convert", str(tmp_path / "m.csv"), str(tmp_path / "m.npz")]) == 0
+    assert "warning: no scenario for this CSV" in capsys.readouterr().out
+
+
+def test_measure_convert_round_trip_npz_csv_npz_is_lossless(tmp_path, capsys):
+    m = _falling_cube()
+    m.positions[:, 5] = np.nan                       # a point never observed
+    m.positions[3:6, 2] = np.nan                     # occlusions
+    m.rest_positions = m.rest + 1e-3                 # a rest shape that is not positions[0]
+    m.material = MeasuredMaterial(np.linspace(1e5, 3e5, 8), 0.3, np.full(8, 900.0))  # per point
+    m.extra_arrays["synth_truth"] = np.array("{}")
+    m.save(tmp_path / "a.npz")
+    assert cli.main(["measure", "convert", str(tmp_path / "a.npz"), str(tmp_path / "a.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "12 faces" in out and "rest positions" in out and "per-point material" in out
+    assert "drop the archive key(s) synth_truth" in out           # what the CSV cannot hold is said
+    assert cli.main(["measure", "convert", str(tmp_path / "a.csv"), str(tmp_path / "b.npz")]) == 0
+    with np.load(tmp_path / "a.npz") as a, np.load(tmp_path / "b.npz") as b:
+        assert sorted(b.files) == sorted(k for k in a.files if k != "synth_truth")
+        for k in b.files:
+            if a[k].dtype.kind == "f":
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)  # NaN where NaN, every bit of the rest
+            elif k == "scenario":
+                assert json.loads(str(a[k])) == json.loads(str(b[k]))
+            else:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_five_frame_numbers_as_times_are_refused():
+    from unipixie.core.diagnosis import sanity
+
+    m = _falling_cube(frames=5)
+    frames = Measurement(positions=m.positions, times=np.arange(5.0), scenario=m.scenario, rest_positions=m.rest,
+                         faces=m.faces, material=m.material)  # 0..4 "s": was accepted (the rule wanted 10 s or more)
+    with pytest.raises(UserError, match="look like frame numbers"):
+        sanity.check(frames, "spring_mass")
+    sanity.check(m, "spring_mass")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--candidates", ""], "--candidates ''"),          # was exit 0: every effect tried
+    (["--candidates", " , "], "no effect named"),
+    (["--setting", "anchors=abc"], "'anchors' must be a positive whole number"),  # was an internal error
+])
+def test_diagnose_refuses_what_it_used_to_reinterpret(argv, needle, tmp_path, capsys):
+    _falling_cube().save(tmp_path / "m.npz")
+    status = cli.main(["diagnose", str(tmp_path / "m.npz"), "--solver", "spring_mass", "--out", str(tmp_path / "rep"),
+                       "--max-additions", "0", "--quiet", *argv])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert not (tmp_path / "rep" / "diagnosis.json").exists()
+
+
+def test_the_diagnosis_api_refuses_an_empty_candidate_list():
+    from unipixie.core.diagnosis import diagnose
+
+    with pytest.raises(UserError, match="empty"):
+        diagnose.diagnose(_falling_cube(), "spring_mass", candidates=[], max_additions=0)

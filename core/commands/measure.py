@@ -100,8 +100,10 @@ def _write(m, p):
 def _write_unlocked(m, p):
     if p.suffix.lower() == ".csv":
         path, dropped = m.save_csv(p)
-        print(f"wrote {p.with_suffix('.json')} (the scenario, point ids, rest positions"
-              f"{', faces' if m.faces is not None else ''}: the side-car the CSV needs)")
+        held = ["the scenario", "every point id"] + (["rest positions"] if m.rest_positions is not None else []) + (
+            [f"{len(m.faces)} faces"] if m.faces is not None else []) + (
+            ["the per-point material"] if m.material is not None and not m.material.homogeneous else [])
+        print(f"wrote {p.with_suffix('.json')} ({', '.join(held)}: the side-car the CSV needs; keep them together)")
         if dropped:
             print(f"note: the CSV and its side-car drop the archive key(s) {', '.join(dropped)} (only a .npz holds "
                   "them)")
@@ -204,6 +206,8 @@ def _convert(args) -> int:
         [args.measurement.with_suffix(".json")] if str(args.measurement).lower().endswith(".csv") else []) + (
         [args.scenario] if getattr(args, "scenario", None) else []))
     m = load_measurement(args)
+    for w in m.warnings:
+        print(f"warning: {w}")
     path = _write(m, out)
     print(f"wrote {path}: {m.summary()}")
     return 0

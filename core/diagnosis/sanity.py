@@ -19,8 +19,9 @@ Checks (σ is the noise estimated from the tracks, ``size`` the rest shape's lar
 * **reach** — no observed point farther from its rest position than ten times what the scenario can
   explain (size + |v₀|·T + ½·2|g|·T² + |ω|·size·T): such values are unit mistakes or sentinels for
   "not observed" (use NaN).
-* **time unit** — a median step of 0.5 s or more over 10 s or more looks like milliseconds or frame
-  numbers, not seconds.
+* **time unit** — a median step of 0.5 s or more (at most 2 instants per second: no motion of a solid is
+  resolved that coarsely) looks like milliseconds or frame numbers, not seconds; whole-number times in
+  steps of 1 are named frame numbers.
 * **cost** — :mod:`unipixie.core.cost`: the whole diagnosis (about :data:`DIAGNOSIS_SIMULATIONS`
   simulations) must stay below the long-job limit unless ``allow_long``.
 
@@ -51,9 +52,8 @@ reaches ~4-5σ over a few hundred instants)."""
 REACH_FACTOR = 10.0
 """An observed point may be at most this many times farther from its rest than the scenario explains."""
 MILLISECONDS_STEP = 0.5
-"""A median time step this long (s) or longer, ..."""
-MILLISECONDS_DURATION = 10.0
-"""... over at least this duration (s), looks like milliseconds or frame numbers."""
+"""A median time step this long (s) or longer looks like milliseconds or frame numbers (whatever the duration:
+five frame numbers 0..4 are as wrong as five hundred)."""
 DIAGNOSIS_SIMULATIONS = 300
 """About how many simulations a diagnosis runs (measured: ~275 for the MPM benchmark diagnosis)."""
 
@@ -119,10 +119,12 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
     # ---- time unit ------------------------------------------------------------------------------
     if len(times) > 1:
         step = float(np.median(np.diff(times)))
-        if step >= MILLISECONDS_STEP and duration >= MILLISECONDS_DURATION:
+        if step >= MILLISECONDS_STEP:
+            frames = bool(np.all(times == np.round(times)) and np.allclose(np.diff(times), 1.0))
+            what = "frame numbers" if frames else "milliseconds or frame numbers"
             msg = (f"{src}the times run over {duration:.6g} s in steps of {step:.3g} s ({1 / step:.3g} instants per "
-                   "second): they look like milliseconds or frame numbers, not seconds — divide milliseconds by 1000 "
-                   "(frame numbers by the frame rate)")
+                   f"second): they look like {what}, not seconds — divide milliseconds by 1000 (frame numbers by "
+                   "the frame rate)")
             if not allow_long:
                 raise UserError(msg + "; if they really are seconds, pass --allow-long")
             warnings.append(msg.removeprefix(src))
