@@ -452,8 +452,13 @@ def _scenario_from_dict(d: dict, src: str):
         missing = [k for k in ("E", "nu", "density") if k not in mat]
         if missing:
             raise _fail(src, f"scenario key 'material' lacks {', '.join(repr(k) for k in missing)}")
-        if any(isinstance(mat[k], (str, bytes, bool)) for k in ("E", "nu", "density")):
-            raise _fail(src, f"scenario key 'material' must hold numbers (JSON numbers, not text), got {dict(mat)!r}")
+        from ..solvers.scenario import require_json_numbers
+
+        for k in ("E", "nu", "density"):
+            try:
+                require_json_numbers(mat[k], f"scenario key 'material' entry '{k}'")
+            except UserError as exc:
+                raise _fail(src, str(exc)) from None
         try:
             E, nu, rho = (float(mat[k]) for k in ("E", "nu", "density"))
         except (TypeError, ValueError):
@@ -618,6 +623,8 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
                         raise UserError(f"{src}: line {lineno}: expected 5 columns t,id,x,y,z (or a header naming "
                                         f"them), got {len(row)}")
                     cols = {"t": 0, "id": 1, "x": 2, "y": 3, "z": 4}
+                    warnings.append("the CSV has no header: its columns are read in the order t,id,x,y,z (name them "
+                                    "in a first line, in any order, to read them by name)")
                 if len(row) <= max(cols.values()):
                     raise UserError(f"{src}: line {lineno}: expected {max(cols.values()) + 1} columns, got {len(row)}")
                 if len(row) > width and any(c.strip() for c in row[width:]):
@@ -706,6 +713,14 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
             raise UserError(f"{src}: point id {pid!r} appears twice at t = {times[t_i]:g} s")
         seen[t_i, p_i] = True
         positions[t_i, p_i] = v
+    from ..solvers.scenario import require_json_numbers
+
+    for key in ("rest_positions", "faces", "E", "nu", "density"):
+        if sidecar.get(key) is not None:
+            try:
+                require_json_numbers(sidecar[key], f"key '{CSV_SIDECAR_KEY}.{key}'")
+            except UserError as exc:
+                raise UserError(f"{src_sc}: {exc}") from None
     if rest_positions is None and sidecar.get("rest_positions") is not None:
         rest_positions = _float_array(sidecar["rest_positions"], f"{CSV_SIDECAR_KEY}.rest_positions", src_sc)
     if faces is None and sidecar.get("faces") is not None:

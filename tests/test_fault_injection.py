@@ -694,3 +694,54 @@ def test_the_diagnosis_api_refuses_an_empty_candidate_list():
 
     with pytest.raises(UserError, match="empty"):
         diagnose.diagnose(_falling_cube(), "spring_mass", candidates=[], max_additions=0)
+
+
+def test_gravity_in_millimetres_is_refused_and_an_odd_one_warned():
+    from unipixie.core.diagnosis import sanity
+
+    with pytest.raises(UserError, match="mm/s²"):  # was accepted: the model fell a thousand times too fast
+        sanity.check(_falling_cube(gravity=[0, 0, -9810.0]), "spring_mass")
+    assert any("gravity is 50" in w for w in sanity.check(_falling_cube(gravity=[0, 0, -50.0]), "spring_mass"))
+    assert not any("gravity" in w for w in sanity.check(_falling_cube(), "spring_mass"))
+
+
+def test_measure_show_says_what_a_diagnosis_would_refuse(tmp_path, capsys):
+    m = _falling_cube()
+    Measurement(positions=m.positions, times=m.times * 1000.0, scenario=m.scenario, rest_positions=m.rest,
+                faces=m.faces, material=m.material).save(tmp_path / "ms.npz")
+    assert cli.main(["measure", "show", str(tmp_path / "ms.npz")]) == 0
+    assert "warning: unipixie diagnose would refuse it" in capsys.readouterr().out  # was silent
+    m.save(tmp_path / "ok.npz")
+    assert cli.main(["measure", "show", str(tmp_path / "ok.npz")]) == 0
+    assert "refuse" not in capsys.readouterr().out
+
+
+def test_a_csv_without_header_says_how_its_columns_are_read(tmp_path):
+    (tmp_path / "n.csv").write_text("0,0,0,0,1\n0.1,0,0,0,0.95\n")
+    assert any("no header" in w for w in load_csv(tmp_path / "n.csv").warnings)
+    (tmp_path / "h.csv").write_text("t,id,x,y,z\n0,0,0,0,1\n0.1,0,0,0,0.95\n")
+    assert not any("no header" in w for w in load_csv(tmp_path / "h.csv").warnings)
+
+
+def test_numbers_as_text_are_refused_in_every_json_input(tmp_path):
+    from unipixie.core import bake
+
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    side = json.loads((tmp_path / "m.json").read_text())
+    side["csv_sidecar"]["rest_positions"][0][2] = "0.05"     # was read: numpy turned the list into text
+    (tmp_path / "m.json").write_text(json.dumps(side))
+    with pytest.raises(UserError, match="csv_sidecar.rest_positions' must hold numbers"):
+        load_csv(tmp_path / "m.csv")
+    with pytest.raises(UserError, match="'material' key 'E' must hold numbers"):  # was accepted as 2e5 Pa
+        bake.material_source_from_dict({"E": "2e5"})
+    with pytest.raises(UserError, match="'seed' must hold numbers"):
+        bake.material_source_from_dict({"source": "model", "seed": "3"})
+    jobs = {"format": bake.MANIFEST_FORMAT, "jobs": [{"scene": "s.blend", "object": "A", "out": "o.blend",
+                                                      "alpha": "0.5"}]}
+    (tmp_path / "jobs.json").write_text(json.dumps(jobs))
+    with pytest.raises(UserError, match="'alpha' must hold numbers"):  # was accepted as α = 0.5
+        bake.load_manifest(tmp_path / "jobs.json")
+    with pytest.raises(UserError, match="scenario key 'material' entry 'E' must hold numbers"):
+        Measurement(positions=m.positions, times=m.times, scenario={**m.scenario_dict(), "material": {
+            "E": "2e5", "nu": 0.3, "density": 1000.0}}, rest_positions=m.rest)

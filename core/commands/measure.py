@@ -196,6 +196,14 @@ def _show(args) -> int:
               f"(noise floor RMSE {1e3 * noise_rmse(s):.3g} mm)")
     for w in m.warnings:
         print(f"  warning: {w}")
+    from ..diagnosis import sanity
+    from ..errors import UserError
+
+    try:  # what a diagnosis would say of the scenario against the measurement, before anyone runs one
+        for w in sanity.check(m, "spring_mass", estimate_cost=False):
+            print(f"  warning: {w}")
+    except UserError as exc:
+        print(f"  warning: unipixie diagnose would refuse it: {exc}")
     return 0
 
 
