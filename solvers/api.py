@@ -114,17 +114,12 @@ def coerce_settings(solver: str, settings):
     checked: an unknown key or a bad value (``anchors="abc"``) is a :class:`UserError` naming it — before any
     long work reads a value from the dict."""
     name = canonical_solver(solver)
+    module = solver_module(name)  # by name, as prepare() does: the solver modules import this one
     if name == "mpm":
-        from .mpm import MPMSettings
-
-        return MPMSettings.from_any(settings)
+        return module.MPMSettings.from_any(settings)
     if name == "lbs":
-        from .lbs import LBSSettings
-
-        return LBSSettings.coerce(settings)
-    from .spring_mass import SpringMassSettings
-
-    return SpringMassSettings.coerce(settings)
+        return module.LBSSettings.coerce(settings)
+    return module.SpringMassSettings.coerce(settings)
 
 
 def prepare(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
