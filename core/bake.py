@@ -530,6 +530,10 @@ def material_source_from_dict(d) -> MaterialSource:
         if unknown:
             raise UserError(f"'material' (model) has unknown key(s) {sorted(unknown)}; use features, checkpoint, seed, "
                             "solver_heads")
+        if "seed" in d:
+            from ..solvers.scenario import require_json_numbers
+
+            require_json_numbers(d["seed"], "'material' (model) key 'seed'")
         if not isinstance(d.get("solver_heads", False), bool):
             raise UserError(f"'material' (model): solver_heads must be true or false, got {d['solver_heads']!r}")
         return ModelSource(features=str(d.get("features", "")), checkpoint=str(d.get("checkpoint", "") or ""),
@@ -545,6 +549,11 @@ def material_source_from_dict(d) -> MaterialSource:
     unknown = set(d) - {"source", "E", "nu", "density", "class", "material"}
     if unknown:
         raise UserError(f"'material' has unknown key(s) {sorted(unknown)}; use E, nu, density, class or file")
+    from ..solvers.scenario import require_json_numbers
+
+    for k in ("E", "nu", "density"):
+        if k in d:
+            require_json_numbers(d[k], f"'material' key '{k}'")
     try:
         return HomogeneousSource(E=float(d.get("E", DEFAULT_HOMOGENEOUS["E"])),
                                  nu=float(d.get("nu", DEFAULT_HOMOGENEOUS["nu"])),
@@ -1441,6 +1450,14 @@ def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None
         scen = d.get("scenario") or {}
         if not isinstance(scen, dict) or set(scen) - SCENARIO_OVERRIDE_KEYS:
             raise UserError(f"{where}: 'scenario' may set only {', '.join(sorted(SCENARIO_OVERRIDE_KEYS))}")
+        from ..solvers.scenario import require_json_numbers
+
+        try:
+            require_json_numbers([a for a in alphas if a is not None], f"{where}: 'alpha'")
+            if "armature_tolerance" in d:
+                require_json_numbers(d["armature_tolerance"], f"{where}: 'armature_tolerance'")
+        except UserError as exc:
+            raise UserError(str(exc)) from None
         try:
             for a in alphas:
                 if a is not None and not 0.0 <= float(a) <= 1.0:

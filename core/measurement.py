@@ -158,6 +158,9 @@ class Measurement:
             raise _fail(src, "key 'positions' contains infinite values (use NaN for unobserved points)")
         pos = pos.copy()
         pos[np.isnan(pos).any(axis=2)] = np.nan  # a sample is observed as a whole or not at all
+        if np.isnan(pos).all():
+            raise _fail(src, "key 'positions' holds no observed sample (every value is NaN): there is no measured "
+                             "motion to read")
         self.positions = pos
         # times ---------------------------------------------------------------------------
         t = _float_array(self.times, "times", src).reshape(-1) if np.ndim(self.times) <= 1 else None
@@ -167,7 +170,10 @@ class Measurement:
             raise _fail(src, f"key 'times' has {t.shape[0]} entries but 'positions' has {T} instants")
         if not np.all(np.isfinite(t)):
             raise _fail(src, "key 'times' contains NaN or infinite values")
-        if T > 1 and not np.all(np.diff(t) > 0):
+        if T < 2:
+            raise _fail(src, f"key 'times' holds {T} instant: a measurement of motion needs at least two "
+                             "(times[0] is the initial state)")
+        if not np.all(np.diff(t) > 0):
             i = int(np.argmax(~(np.diff(t) > 0)))
             raise _fail(src, f"key 'times' must be strictly increasing (times[{i}] = {t[i]:g} s, "
                              f"times[{i + 1}] = {t[i + 1]:g} s)")
@@ -446,8 +452,13 @@ def _scenario_from_dict(d: dict, src: str):
         missing = [k for k in ("E", "nu", "density") if k not in mat]
         if missing:
             raise _fail(src, f"scenario key 'material' lacks {', '.join(repr(k) for k in missing)}")
-        if any(isinstance(mat[k], (str, bytes, bool)) for k in ("E", "nu", "density")):
-            raise _fail(src, f"scenario key 'material' must hold numbers (JSON numbers, not text), got {dict(mat)!r}")
+        from ..solvers.scenario import require_json_numbers
+
+        for k in ("E", "nu", "density"):
+            try:
+                require_json_numbers(mat[k], f"scenario key 'material' entry '{k}'")
+            except UserError as exc:
+                raise _fail(src, str(exc)) from None
         try:
             E, nu, rho = (float(mat[k]) for k in ("E", "nu", "density"))
         except (TypeError, ValueError):
@@ -494,7 +505,7 @@ def load_npz(path) -> Measurement:
                         f"shape {sc.shape}")
     try:
         sdict = json.loads(str(sc))
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise UserError(f"{src}: key 'scenario' is not valid JSON ({exc})") from None
     if not isinstance(sdict, dict):
         raise UserError(f"{src}: key 'scenario' must be a JSON object")
@@ -589,7 +600,7 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
     header_seen = False
     warnings: list[str] = []
     try:
-        f = open(path, newline="", encoding="utf-8")
+        f = open(path, newline="", encoding="utf-8-sig")  # -sig: a byte-order mark (Excel's "CSV UTF-8") is not a name
     except OSError as exc:
         raise UserError(f"{src}: cannot read it ({exc.strerror or exc})") from None
     try:
@@ -601,6 +612,8 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
                 if not header_seen:
                     header_seen = True
                     cols = _csv_columns(row, src, lineno)
+                    named = cols is not None
+                    width = len(row)
                     if cols is not None:
                         ignored = [row[i] for i in range(len(row)) if i not in cols.values()]
                         if ignored:
@@ -610,8 +623,14 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
                         raise UserError(f"{src}: line {lineno}: expected 5 columns t,id,x,y,z (or a header naming "
                                         f"them), got {len(row)}")
                     cols = {"t": 0, "id": 1, "x": 2, "y": 3, "z": 4}
+                    warnings.append("the CSV has no header: its columns are read in the order t,id,x,y,z (name them "
+                                    "in a first line, in any order, to read them by name)")
                 if len(row) <= max(cols.values()):
                     raise UserError(f"{src}: line {lineno}: expected {max(cols.values()) + 1} columns, got {len(row)}")
+                if len(row) > width and any(c.strip() for c in row[width:]):
+                    raise UserError(f"{src}: line {lineno}: {len(row)} cells where the "
+                                    f"{'header names' if named else 'rows t,id,x,y,z have'} {width}: the row does "
+                                    "not belong to this table (a stray separator or a joined line)")
                 try:
                     t = float(row[cols["t"]])
                 except ValueError:
@@ -653,6 +672,9 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
         sdict, src_sc = dict(scenario), src
     else:
         sdict, src_sc = {"format": MEASUREMENT_FORMAT}, src
+        warnings.append(f"no scenario for this CSV (no {path.with_suffix('.json').name} beside it, no --scenario): "
+                        "the default is assumed — gravity (0, 0, -9.81) m/s², ground at z = 0 m, starting at rest, no "
+                        "clamp, no material stated")
     sidecar = sdict.pop(CSV_SIDECAR_KEY, None) if isinstance(sdict, dict) else None
     if sidecar is not None and not isinstance(sidecar, Mapping):
         raise UserError(f"{src_sc}: key '{CSV_SIDECAR_KEY}' must be a JSON object")
@@ -691,6 +713,14 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
             raise UserError(f"{src}: point id {pid!r} appears twice at t = {times[t_i]:g} s")
         seen[t_i, p_i] = True
         positions[t_i, p_i] = v
+    from ..solvers.scenario import require_json_numbers
+
+    for key in ("rest_positions", "faces", "E", "nu", "density"):
+        if sidecar.get(key) is not None:
+            try:
+                require_json_numbers(sidecar[key], f"key '{CSV_SIDECAR_KEY}.{key}'")
+            except UserError as exc:
+                raise UserError(f"{src_sc}: {exc}") from None
     if rest_positions is None and sidecar.get("rest_positions") is not None:
         rest_positions = _float_array(sidecar["rest_positions"], f"{CSV_SIDECAR_KEY}.rest_positions", src_sc)
     if faces is None and sidecar.get("faces") is not None:
@@ -713,7 +743,8 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
     m = Measurement(positions=positions, times=times, scenario=sc, rest_positions=rest_positions, faces=faces,
                     material=material, source=src)
     m.warnings.extend(warnings)
-    m.extra_arrays["point_ids"] = np.asarray(keys)
+    if keys != [str(i) for i in range(len(keys))]:  # ids 0..N-1 are the positions themselves: nothing to keep
+        m.extra_arrays["point_ids"] = np.asarray(keys)
     return m
 
 

@@ -109,6 +109,19 @@ def solver_module(name: str):
     return importlib.import_module(f"{__package__}.{SOLVERS[canonical_solver(name)]}")
 
 
+def coerce_settings(solver: str, settings):
+    """The named solver's settings object from ``settings`` (``None``, a dict of its fields or the object),
+    checked: an unknown key or a bad value (``anchors="abc"``) is a :class:`UserError` naming it — before any
+    long work reads a value from the dict."""
+    name = canonical_solver(solver)
+    module = solver_module(name)  # by name, as prepare() does: the solver modules import this one
+    if name == "mpm":
+        return module.MPMSettings.from_any(settings)
+    if name == "lbs":
+        return module.LBSSettings.coerce(settings)
+    return module.SpringMassSettings.coerce(settings)
+
+
 def prepare(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
             settings=None, progress: Progress | None = None) -> Simulation:
     """Prepare a simulation with the named solver (``"mpm"``, ``"lbs"``, ``"spring_mass"``)."""

@@ -17,14 +17,21 @@ SCENARIO_FORMAT = "unipixie.measurement/1"
 _KNOWN = {"format", "gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box", "material", "notes"}
 
 
+def require_json_numbers(value, what: str) -> None:
+    """Numbers read from JSON (a scenario, a CSV's side-car, a bake manifest) are JSON numbers: text such as
+    ``"9.81"`` or true/false is refused in every key, at any depth of nesting — one rule for every file.
+    ``what`` names the key in the message (``"scenario key 'gravity'"``)."""
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, (list, tuple)):
+            stack.extend(v)
+        elif isinstance(v, (str, bytes, bool, np.str_, np.bool_)):
+            raise UserError(f"{what} must hold numbers (JSON numbers, not text or true/false), got {value!r}")
+
+
 def _not_text(value, key: str) -> None:
-    """Numbers in a scenario are JSON numbers: text such as ``"9.81"`` (or true/false) is refused in every key."""
-    items = value if isinstance(value, (list, tuple)) else [value]
-    flat = []
-    for v in items:
-        flat.extend(v if isinstance(v, (list, tuple)) else [v])
-    if any(isinstance(v, (str, bytes, bool)) for v in flat):
-        raise UserError(f"scenario key '{key}' must hold numbers, not text or true/false, got {value!r}")
+    require_json_numbers(value, f"scenario key '{key}'")
 
 
 def _vec3(value, key: str) -> np.ndarray:
@@ -147,6 +154,6 @@ class Scenario:
     def from_json(cls, text: str) -> "Scenario":
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise UserError(f"scenario is not valid JSON: {exc}") from None
         return cls.from_dict(d)

@@ -565,3 +565,183 @@ def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
             proc.kill()
     assert proc.returncode == EXIT_CANCELLED
     assert "cleaning up" in err and err.strip().endswith("unipixie bake: cancelled") and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- found by the fault matrix (tests/fault_matrix)
+@pytest.mark.parametrize("argv, needle", [
+    (["--seed", "-1"], "--seed"),                      # was an internal error (numpy's ValueError)
+    (["--height", "-1"], "--height"),                  # was exit 0: the object started inside the ground
+    (["--velocity", "nan,0,0"], "--velocity"),         # was exit 3 "diverged" for a bad argument
+    (["--spin", "inf"], "--spin"),
+    (["--fps", "1e7"], "--allow-long"),                # 2,000,001 instants: was a silent hang
+    (["--duration", "1e6", "--fps", "1000"], "--allow-long"),  # was an internal error (a 312 GB allocation)
+])
+def test_synth_refuses_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
+    status = cli.main(["measure", "synth", "--out", str(tmp_path / "m.npz"), "--solver", "spring_mass",
+                       "--duration", "0.2", "--fps", "20", "--points", "30", *argv])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_deeply_nested_scenario_key_is_a_one_line_error(tmp_path, capsys):
+    m = _falling_cube()
+    m.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as d:
+        arrays = {k: d[k] for k in d.files}
+    arrays["scenario"] = np.array("[" * 100000 + "]" * 100000)
+    np.savez(tmp_path / "deep.npz", **arrays)
+    with pytest.raises(UserError, match="not valid JSON"):
+        load(tmp_path / "deep.npz")
+    with pytest.raises(UserError, match="not valid JSON"):
+        Scenario.from_json("[" * 100000 + "]" * 100000)
+    assert cli.main(["measure", "show", str(tmp_path / "deep.npz")]) == EXIT_BAD_INPUT
+    assert "internal error" not in capsys.readouterr().err
+
+
+def test_a_csv_with_a_byte_order_mark_reads_as_without(tmp_path):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    text = (tmp_path / "m.csv").read_text(encoding="utf-8")
+    (tmp_path / "bom.csv").write_text("\ufeff" + text, encoding="utf-8")
+    (tmp_path / "bom.json").write_text((tmp_path / "m.json").read_text())
+    back = load_csv(tmp_path / "bom.csv")
+    np.testing.assert_array_equal(back.positions, m.positions)
+
+
+# --------------------------------------------------------------------------- no measurement without motion, no silent defaults
+def test_a_measurement_needs_two_instants_and_an_observed_sample():
+    m = _falling_cube()
+    with pytest.raises(UserError, match="at least two"):  # was accepted: `measure show` printed "valid"
+        Measurement(positions=m.positions[:1], times=m.times[:1], scenario=m.scenario, rest_positions=m.rest)
+    with pytest.raises(UserError, match="no observed sample"):  # was accepted: `measure convert` wrote it
+        Measurement(positions=m.positions * np.nan, times=m.times, scenario=m.scenario, rest_positions=m.rest)
+
+
+def test_a_csv_row_longer_than_its_header_is_refused(tmp_path):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    rows = (tmp_path / "m.csv").read_text().splitlines()
+    (tmp_path / "long.csv").write_text("\n".join(rows + ["0," * 2000]) + "\n")  # was read as t=0, id=0, x=y=z=0
+    (tmp_path / "long.json").write_text((tmp_path / "m.json").read_text())
+    with pytest.raises(UserError, match=f"line {len(rows) + 1}: 2001 cells where the header names 5"):
+        load_csv(tmp_path / "long.csv")
+    (tmp_path / "trail.csv").write_text("\n".join([rows[0]] + [r + "," for r in rows[1:]]) + "\n")
+    (tmp_path / "trail.json").write_text((tmp_path / "m.json").read_text())
+    np.testing.assert_array_equal(load_csv(tmp_path / "trail.csv").positions, m.positions)  # empty trailing cells
+
+
+def test_a_csv_without_scenario_says_the_default_it_assumes(tmp_path, capsys):
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    (tmp_path / "m.json").unlink()
+    assert any("default is assumed" in w for w in load_csv(tmp_path / "m.csv").warnings)
+    assert cli.main(["measure", "convert", str(tmp_path / "m.csv"), str(tmp_path / "m.npz")]) == 0
+    assert "warning: no scenario for this CSV" in capsys.readouterr().out
+
+
+def test_measure_convert_round_trip_npz_csv_npz_is_lossless(tmp_path, capsys):
+    m = _falling_cube()
+    m.positions[:, 5] = np.nan                       # a point never observed
+    m.positions[3:6, 2] = np.nan                     # occlusions
+    m.rest_positions = m.rest + 1e-3                 # a rest shape that is not positions[0]
+    m.material = MeasuredMaterial(np.linspace(1e5, 3e5, 8), 0.3, np.full(8, 900.0))  # per point
+    m.extra_arrays["synth_truth"] = np.array("{}")
+    m.save(tmp_path / "a.npz")
+    assert cli.main(["measure", "convert", str(tmp_path / "a.npz"), str(tmp_path / "a.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "12 faces" in out and "rest positions" in out and "per-point material" in out
+    assert "drop the archive key(s) synth_truth" in out           # what the CSV cannot hold is said
+    assert cli.main(["measure", "convert", str(tmp_path / "a.csv"), str(tmp_path / "b.npz")]) == 0
+    with np.load(tmp_path / "a.npz") as a, np.load(tmp_path / "b.npz") as b:
+        assert sorted(b.files) == sorted(k for k in a.files if k != "synth_truth")
+        for k in b.files:
+            if a[k].dtype.kind == "f":
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)  # NaN where NaN, every bit of the rest
+            elif k == "scenario":
+                assert json.loads(str(a[k])) == json.loads(str(b[k]))
+            else:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_five_frame_numbers_as_times_are_refused():
+    from unipixie.core.diagnosis import sanity
+
+    m = _falling_cube(frames=5)
+    frames = Measurement(positions=m.positions, times=np.arange(5.0), scenario=m.scenario, rest_positions=m.rest,
+                         faces=m.faces, material=m.material)  # 0..4 "s": was accepted (the rule wanted 10 s or more)
+    with pytest.raises(UserError, match="look like frame numbers"):
+        sanity.check(frames, "spring_mass")
+    sanity.check(m, "spring_mass")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--candidates", ""], "--candidates ''"),          # was exit 0: every effect tried
+    (["--candidates", " , "], "no effect named"),
+    (["--setting", "anchors=abc"], "'anchors' must be a positive whole number"),  # was an internal error
+])
+def test_diagnose_refuses_what_it_used_to_reinterpret(argv, needle, tmp_path, capsys):
+    _falling_cube().save(tmp_path / "m.npz")
+    status = cli.main(["diagnose", str(tmp_path / "m.npz"), "--solver", "spring_mass", "--out", str(tmp_path / "rep"),
+                       "--max-additions", "0", "--quiet", *argv])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert not (tmp_path / "rep" / "diagnosis.json").exists()
+
+
+def test_the_diagnosis_api_refuses_an_empty_candidate_list():
+    from unipixie.core.diagnosis import diagnose
+
+    with pytest.raises(UserError, match="empty"):
+        diagnose.diagnose(_falling_cube(), "spring_mass", candidates=[], max_additions=0)
+
+
+def test_gravity_in_millimetres_is_refused_and_an_odd_one_warned():
+    from unipixie.core.diagnosis import sanity
+
+    with pytest.raises(UserError, match="mm/s²"):  # was accepted: the model fell a thousand times too fast
+        sanity.check(_falling_cube(gravity=[0, 0, -9810.0]), "spring_mass")
+    assert any("gravity is 50" in w for w in sanity.check(_falling_cube(gravity=[0, 0, -50.0]), "spring_mass"))
+    assert not any("gravity" in w for w in sanity.check(_falling_cube(), "spring_mass"))
+
+
+def test_measure_show_says_what_a_diagnosis_would_refuse(tmp_path, capsys):
+    m = _falling_cube()
+    Measurement(positions=m.positions, times=m.times * 1000.0, scenario=m.scenario, rest_positions=m.rest,
+                faces=m.faces, material=m.material).save(tmp_path / "ms.npz")
+    assert cli.main(["measure", "show", str(tmp_path / "ms.npz")]) == 0
+    assert "warning: unipixie diagnose would refuse it" in capsys.readouterr().out  # was silent
+    m.save(tmp_path / "ok.npz")
+    assert cli.main(["measure", "show", str(tmp_path / "ok.npz")]) == 0
+    assert "refuse" not in capsys.readouterr().out
+
+
+def test_a_csv_without_header_says_how_its_columns_are_read(tmp_path):
+    (tmp_path / "n.csv").write_text("0,0,0,0,1\n0.1,0,0,0,0.95\n")
+    assert any("no header" in w for w in load_csv(tmp_path / "n.csv").warnings)
+    (tmp_path / "h.csv").write_text("t,id,x,y,z\n0,0,0,0,1\n0.1,0,0,0,0.95\n")
+    assert not any("no header" in w for w in load_csv(tmp_path / "h.csv").warnings)
+
+
+def test_numbers_as_text_are_refused_in_every_json_input(tmp_path):
+    from unipixie.core import bake
+
+    m = _falling_cube()
+    m.save_csv(tmp_path / "m.csv")
+    side = json.loads((tmp_path / "m.json").read_text())
+    side["csv_sidecar"]["rest_positions"][0][2] = "0.05"     # was read: numpy turned the list into text
+    (tmp_path / "m.json").write_text(json.dumps(side))
+    with pytest.raises(UserError, match="csv_sidecar.rest_positions' must hold numbers"):
+        load_csv(tmp_path / "m.csv")
+    with pytest.raises(UserError, match="'material' key 'E' must hold numbers"):  # was accepted as 2e5 Pa
+        bake.material_source_from_dict({"E": "2e5"})
+    with pytest.raises(UserError, match="'seed' must hold numbers"):
+        bake.material_source_from_dict({"source": "model", "seed": "3"})
+    jobs = {"format": bake.MANIFEST_FORMAT, "jobs": [{"scene": "s.blend", "object": "A", "out": "o.blend",
+                                                      "alpha": "0.5"}]}
+    (tmp_path / "jobs.json").write_text(json.dumps(jobs))
+    with pytest.raises(UserError, match="'alpha' must hold numbers"):  # was accepted as α = 0.5
+        bake.load_manifest(tmp_path / "jobs.json")
+    with pytest.raises(UserError, match="scenario key 'material' entry 'E' must hold numbers"):
+        Measurement(positions=m.positions, times=m.times, scenario={**m.scenario_dict(), "material": {
+            "E": "2e5", "nu": 0.3, "density": 1000.0}}, rest_positions=m.rest)

@@ -113,7 +113,12 @@ def run(args) -> int:
     m = load_measurement(args)
     device = resolve_device(args.device)
     solver = diagnose.default_solver(device) if args.solver == "auto" else args.solver
-    cands = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates else None
+    cands = None
+    if args.candidates is not None:  # "--candidates ''" is a mistake, not "every effect"
+        cands = [c.strip() for c in args.candidates.split(",") if c.strip()]
+        if not cands:
+            raise UserError(f"--candidates {args.candidates!r}: no effect named; give comma-separated effect names "
+                            "(e.g. wind,linear_drag) or leave the option out to try the whole registry")
     log = None if args.quiet else print
     with Progress(total=100, description="diagnose", show_bar=not args.quiet) as progress:
         if not args.quiet and args.solver == "auto":

@@ -54,6 +54,8 @@ def add_arguments(p):
                    help="generating solver setting, e.g. cells_across=16 (mpm) or anchors=512 (spring_mass)")
     s.add_argument("--device", type=device_type, default="cpu")
     s.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    s.add_argument("--allow-long", action="store_true",
+                   help="simulate even when the number of instants (duration × fps) passes the long-job limit")
 
     sh = sub.add_parser("show", help="validate a measurement and print a summary (and the noise estimate)")
     sh.add_argument("measurement", type=existing_file, metavar="MEASUREMENT")
@@ -98,8 +100,10 @@ def _write(m, p):
 def _write_unlocked(m, p):
     if p.suffix.lower() == ".csv":
         path, dropped = m.save_csv(p)
-        print(f"wrote {p.with_suffix('.json')} (the scenario, point ids, rest positions"
-              f"{', faces' if m.faces is not None else ''}: the side-car the CSV needs)")
+        held = ["the scenario", "every point id"] + (["rest positions"] if m.rest_positions is not None else []) + (
+            [f"{len(m.faces)} faces"] if m.faces is not None else []) + (
+            ["the per-point material"] if m.material is not None and not m.material.homogeneous else [])
+        print(f"wrote {p.with_suffix('.json')} ({', '.join(held)}: the side-car the CSV needs; keep them together)")
         if dropped:
             print(f"note: the CSV and its side-car drop the archive key(s) {', '.join(dropped)} (only a .npz holds "
                   "them)")
@@ -121,6 +125,7 @@ def _synth(args) -> int:
     from ...solvers.warp_runtime import resolve_device
     from .diagnose import parse_settings
 
+    from ..cost import frames_estimate
     from ..errors import UserError
 
     if args.points < MIN_SYNTH_POINTS:
@@ -129,17 +134,26 @@ def _synth(args) -> int:
     checks = [("--duration", args.duration, args.duration > 0, "a positive number of seconds"),
               ("--fps", args.fps, args.fps > 0, "a positive number of instants per second"),
               ("--noise", args.noise, args.noise >= 0, "0 or more metres"),
-              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)")]
+              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)"),
+              ("--spin", args.spin, True, "a finite rotation rate in rad/s")]
+    if args.height is not None:
+        checks.append(("--height", args.height, args.height >= 0, "0 or more metres above the ground (a negative "
+                                                                  "height starts the object inside the ground)"))
     for flag, value, ok, what in checks:
         if not (ok and value == value and abs(value) != float("inf")):
             raise UserError(f"{flag} {value:g}: expected {what}")
+    if args.seed < 0:
+        raise UserError(f"--seed {args.seed}: expected 0 or a positive whole number")
+    velocity = _vector(args.velocity)
+    frames_estimate(f"a synthetic measurement of {args.duration:g} s at {args.fps:g} fps",
+                    int(args.duration * args.fps) + 1).check(allow_long=args.allow_long)
     out = _check_output(args.out, args.force)
     effects = [e for e in args.effect if e.strip().lower() != "none"]
     with Progress(total=1.0, description="synth") as progress:
         m = synth.synthesize(effects, args.solver, shape=args.shape, scenario=args.scenario, noise=args.noise,
                              occlusion=args.occlusion, duration=args.duration, fps=args.fps, points=args.points,
                              E=args.E, nu=args.nu, density=args.density, true_E_scale=args.true_E_scale,
-                             spin=args.spin, velocity=_vector(args.velocity), height=args.height,
+                             spin=args.spin, velocity=velocity, height=args.height,
                              seed=args.seed, device=resolve_device(args.device),
                              settings=parse_settings(args.setting) or None, progress=progress)
     path = _write(m, out)
@@ -158,8 +172,8 @@ def _vector(text):
         v = [float(x) for x in text.split(",")]
     except ValueError:
         raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz") from None
-    if len(v) != 3:
-        raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz")
+    if len(v) != 3 or not all(abs(x) < float("inf") for x in v):
+        raise UserError(f"--velocity {text!r}: expected three finite numbers vx,vy,vz (m/s)")
     return v
 
 
@@ -182,6 +196,14 @@ def _show(args) -> int:
               f"(noise floor RMSE {1e3 * noise_rmse(s):.3g} mm)")
     for w in m.warnings:
         print(f"  warning: {w}")
+    from ..diagnosis import sanity
+    from ..errors import UserError
+
+    try:  # what a diagnosis would say of the scenario against the measurement, before anyone runs one
+        for w in sanity.check(m, "spring_mass", estimate_cost=False):
+            print(f"  warning: {w}")
+    except UserError as exc:
+        print(f"  warning: unipixie diagnose would refuse it: {exc}")
     return 0
 
 
@@ -192,6 +214,8 @@ def _convert(args) -> int:
         [args.measurement.with_suffix(".json")] if str(args.measurement).lower().endswith(".csv") else []) + (
         [args.scenario] if getattr(args, "scenario", None) else []))
     m = load_measurement(args)
+    for w in m.warnings:
+        print(f"warning: {w}")
     path = _write(m, out)
     print(f"wrote {path}: {m.summary()}")
     return 0

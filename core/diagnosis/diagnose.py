@@ -314,6 +314,7 @@ class Diagnosis:
         bm = self.base_material
         if bm.get("looks_wrong"):
             lines.append(f"base material looks wrong: E/ρ × {bm['E_scale']:.3g} fits better ({bm['note']})")
+        lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -723,6 +724,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     for e in effects_on:
         if not isinstance(e, fx.Effect):
             raise UserError(f"effects_on: not an effect: {e!r}")
+    if candidates is not None and not list(candidates):
+        raise UserError("candidates: the list of effects to try is empty; name at least one effect (or give none "
+                        "for the whole registry)")
     names = list(fx.EFFECTS) if candidates is None else [fx.get(n).name for n in candidates]
     picks = [fx.get(n).name for n in add]
     if max_additions < 0:
@@ -739,6 +743,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     sigma = estimate_noise(measurement.positions, measurement.rest)
     if settings is None:
         settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
+    api.coerce_settings(solver, settings)  # a bad value is named here, before the cost estimate reads it
     say(f"measurement: {measurement.summary()}")
     sane_warnings = sanity.check(measurement, solver, settings, sigma=sigma, allow_long=allow_long, log=say)
     body = measurement.body()

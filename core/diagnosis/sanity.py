@@ -19,8 +19,11 @@ Checks (σ is the noise estimated from the tracks, ``size`` the rest shape's lar
 * **reach** — no observed point farther from its rest position than ten times what the scenario can
   explain (size + |v₀|·T + ½·2|g|·T² + |ω|·size·T): such values are unit mistakes or sentinels for
   "not observed" (use NaN).
-* **time unit** — a median step of 0.5 s or more over 10 s or more looks like milliseconds or frame
-  numbers, not seconds.
+* **time unit** — a median step of 0.5 s or more (at most 2 instants per second: no motion of a solid is
+  resolved that coarsely) looks like milliseconds or frame numbers, not seconds; whole-number times in
+  steps of 1 are named frame numbers.
+* **gravity** — ``|g|`` above :data:`GRAVITY_REFUSE` (100 g) is a unit mistake (mm/s²) and refused; above
+  :data:`GRAVITY_WARN` a warning (no planet's).
 * **cost** — :mod:`unipixie.core.cost`: the whole diagnosis (about :data:`DIAGNOSIS_SIMULATIONS`
   simulations) must stay below the long-job limit unless ``allow_long``.
 
@@ -51,9 +54,12 @@ reaches ~4-5σ over a few hundred instants)."""
 REACH_FACTOR = 10.0
 """An observed point may be at most this many times farther from its rest than the scenario explains."""
 MILLISECONDS_STEP = 0.5
-"""A median time step this long (s) or longer, ..."""
-MILLISECONDS_DURATION = 10.0
-"""... over at least this duration (s), looks like milliseconds or frame numbers."""
+"""A median time step this long (s) or longer looks like milliseconds or frame numbers (whatever the duration:
+five frame numbers 0..4 are as wrong as five hundred)."""
+GRAVITY_REFUSE = 1000.0
+"""m/s²: a stated gravity stronger than this (about 100 g) is refused as a unit mistake (9810 mm/s² for 9.81 m/s²)."""
+GRAVITY_WARN = 30.0
+"""m/s²: a stated gravity stronger than this (about 3 g, more than any planet's surface but Jupiter's 25) is a warning."""
 DIAGNOSIS_SIMULATIONS = 300
 """About how many simulations a diagnosis runs (measured: ~275 for the MPM benchmark diagnosis)."""
 
@@ -63,12 +69,13 @@ def _where(measurement) -> str:
 
 
 def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = None, allow_long: bool = False,
-          log: Optional[Callable[[str], None]] = None) -> list[str]:
+          log: Optional[Callable[[str], None]] = None, estimate_cost: bool = True) -> list[str]:
     """Refuse (``UserError``) a measurement whose stated scenario cannot describe it; return warnings.
 
     measurement: :class:`~unipixie.core.measurement.Measurement` (with a material); solver: the
     diagnosing solver; settings: its settings (for the cost estimate); sigma: the noise σ (m) if
-    already estimated; allow_long: accept millisecond-looking times and long runs.
+    already estimated; allow_long: accept millisecond-looking times and long runs; estimate_cost: also
+    estimate (and limit) the diagnosis's cost (``measure show`` checks the rest only).
     """
     from ..bake import SIZE_REFUSE_RANGE, SIZE_WARN_RANGE
     from .compare import estimate_noise
@@ -100,9 +107,17 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
     if not (wlo <= size <= whi):
         warnings.append(f"the solid is {size:.3g} m across: positions are read as metres")
 
+    # ---- gravity: metres per second squared ----------------------------------------------------------
+    g = float(np.linalg.norm(sc.gravity))
+    if g > GRAVITY_REFUSE:
+        raise UserError(f"{src}scenario key 'gravity' is {g:.4g} m/s² ({g / 9.81:.3g} g): it must be in m/s² — "
+                        "9810 would be Earth's gravity in mm/s², give [0, 0, -9.81]")
+    if g > GRAVITY_WARN:
+        warnings.append(f"gravity is {g:.4g} m/s² ({g / 9.81:.3g} g), stronger than any planet's surface: is scenario "
+                        "key 'gravity' in m/s²?")
+
     # ---- reach: no point can be farther from rest than the scenario allows -----------------------
     duration = float(times[-1] - times[0]) if len(times) > 1 else 0.0
-    g = float(np.linalg.norm(sc.gravity))
     v0 = float(np.linalg.norm(sc.initial_velocity))
     w0 = float(np.linalg.norm(sc.initial_angular_velocity))
     reach = REACH_FACTOR * (size + v0 * duration + g * duration ** 2 + w0 * size * duration)
@@ -119,10 +134,12 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
     # ---- time unit ------------------------------------------------------------------------------
     if len(times) > 1:
         step = float(np.median(np.diff(times)))
-        if step >= MILLISECONDS_STEP and duration >= MILLISECONDS_DURATION:
+        if step >= MILLISECONDS_STEP:
+            frames = bool(np.all(times == np.round(times)) and np.allclose(np.diff(times), 1.0))
+            what = "frame numbers" if frames else "milliseconds or frame numbers"
             msg = (f"{src}the times run over {duration:.6g} s in steps of {step:.3g} s ({1 / step:.3g} instants per "
-                   "second): they look like milliseconds or frame numbers, not seconds — divide milliseconds by 1000 "
-                   "(frame numbers by the frame rate)")
+                   f"second): they look like {what}, not seconds — divide milliseconds by 1000 (frame numbers by "
+                   "the frame rate)")
             if not allow_long:
                 raise UserError(msg + "; if they really are seconds, pass --allow-long")
             warnings.append(msg.removeprefix(src))
@@ -173,7 +190,7 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
 
     # ---- cost ------------------------------------------------------------------------------------
     material = measurement.material
-    if material is not None and len(times) > 1:
+    if estimate_cost and material is not None and len(times) > 1:
         from ..cost import estimate
 
         est = estimate(f"this {solver} diagnosis", solver, size=size, times=times - times[0],
