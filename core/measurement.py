@@ -494,7 +494,7 @@ def load_npz(path) -> Measurement:
                         f"shape {sc.shape}")
     try:
         sdict = json.loads(str(sc))
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise UserError(f"{src}: key 'scenario' is not valid JSON ({exc})") from None
     if not isinstance(sdict, dict):
         raise UserError(f"{src}: key 'scenario' must be a JSON object")
@@ -589,7 +589,7 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
     header_seen = False
     warnings: list[str] = []
     try:
-        f = open(path, newline="", encoding="utf-8")
+        f = open(path, newline="", encoding="utf-8-sig")  # -sig: a byte-order mark (Excel's "CSV UTF-8") is not a name
     except OSError as exc:
         raise UserError(f"{src}: cannot read it ({exc.strerror or exc})") from None
     try:

@@ -147,6 +147,6 @@ class Scenario:
     def from_json(cls, text: str) -> "Scenario":
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise UserError(f"scenario is not valid JSON: {exc}") from None
         return cls.from_dict(d)

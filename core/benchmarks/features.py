@@ -59,9 +59,10 @@ def _device_name(device: str) -> str:
 
 def save_bench_views(path, views, vertices_normalised, faces) -> Path:
     """Views (uint8 images) and the normalised mesh in one compressed file for ``--views-from``."""
+    from ..atomic_io import save_npz
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, format=VIEWS_FORMAT, images=np.round(np.clip(views.images, 0, 1) * 255).astype(np.uint8),
+    save_npz(path, format=VIEWS_FORMAT, images=np.round(np.clip(views.images, 0, 1) * 255).astype(np.uint8),
                         depth=views.depth.astype(np.float32), intrinsics=views.intrinsics,
                         cam_to_world=views.cam_to_world, normalisation=views.normalisation,
                         vertices=np.asarray(vertices_normalised, np.float32), faces=np.asarray(faces, np.int32),

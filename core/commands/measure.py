@@ -54,6 +54,8 @@ def add_arguments(p):
                    help="generating solver setting, e.g. cells_across=16 (mpm) or anchors=512 (spring_mass)")
     s.add_argument("--device", type=device_type, default="cpu")
     s.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    s.add_argument("--allow-long", action="store_true",
+                   help="simulate even when the number of instants (duration × fps) passes the long-job limit")
 
     sh = sub.add_parser("show", help="validate a measurement and print a summary (and the noise estimate)")
     sh.add_argument("measurement", type=existing_file, metavar="MEASUREMENT")
@@ -121,6 +123,7 @@ def _synth(args) -> int:
     from ...solvers.warp_runtime import resolve_device
     from .diagnose import parse_settings
 
+    from ..cost import frames_estimate
     from ..errors import UserError
 
     if args.points < MIN_SYNTH_POINTS:
@@ -129,17 +132,27 @@ def _synth(args) -> int:
     checks = [("--duration", args.duration, args.duration > 0, "a positive number of seconds"),
               ("--fps", args.fps, args.fps > 0, "a positive number of instants per second"),
               ("--noise", args.noise, args.noise >= 0, "0 or more metres"),
-              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)")]
+              ("--occlusion", args.occlusion, 0 <= args.occlusion < 1, "a fraction in [0, 1)"),
+              ("--spin", args.spin, True, "a finite rotation rate in rad/s")]
+    if args.height is not None:
+        checks.append(("--height", args.height, args.height >= 0, "0 or more metres above the ground (a negative "
+                                                                  "height starts the object inside the ground)"))
     for flag, value, ok, what in checks:
         if not (ok and value == value and abs(value) != float("inf")):
             raise UserError(f"{flag} {value:g}: expected {what}")
+    if args.seed < 0:
+        raise UserError(f"--seed {args.seed}: expected 0 or a positive whole number")
+    velocity = _vector(args.velocity)
+    frames_estimate(f"a synthetic measurement of {args.duration:g} s at {args.fps:g} fps",
+                    int(args.duration * args.fps) + 1).check(allow_long=args.allow_long)
     out = _check_output(args.out, args.force)
     effects = [e for e in args.effect if e.strip().lower() != "none"]
+    _synth_cost(args).check(args.allow_long, remedy="use a shorter --duration, a lower --fps or a coarser --setting")
     with Progress(total=1.0, description="synth") as progress:
         m = synth.synthesize(effects, args.solver, shape=args.shape, scenario=args.scenario, noise=args.noise,
                              occlusion=args.occlusion, duration=args.duration, fps=args.fps, points=args.points,
                              E=args.E, nu=args.nu, density=args.density, true_E_scale=args.true_E_scale,
-                             spin=args.spin, velocity=_vector(args.velocity), height=args.height,
+                             spin=args.spin, velocity=velocity, height=args.height,
                              seed=args.seed, device=resolve_device(args.device),
                              settings=parse_settings(args.setting) or None, progress=progress)
     path = _write(m, out)
@@ -147,6 +160,24 @@ def _synth(args) -> int:
     print(f"hidden: {', '.join(effects) or 'no effect'} (simulated with {args.solver}, E × {args.true_E_scale:g}); "
           f"noise σ = {args.noise:g} m, {100 * args.occlusion:.0f} % occluded")
     return 0
+
+
+def _synth_cost(args):
+    """The up-front cost of ``measure synth`` (frames x substeps, core/cost.py), printed before it runs."""
+    import numpy as np
+
+    from ..cost import estimate
+    from ..diagnosis.synth import make_shape
+    from .diagnose import parse_settings
+
+    mesh = make_shape(args.shape, args.points)
+    frames = int(args.duration * args.fps) + 1
+    material = type("StatedMaterial", (), {"E": args.E * args.true_E_scale, "nu": args.nu, "density": args.density})
+    est = estimate(f"synthesising {args.duration:g} s at {args.fps:g} fps with {args.solver}", args.solver,
+                   size=float(np.max(mesh.extents)), times=np.arange(frames) / args.fps, material_spec=material,
+                   points=len(mesh.vertices), settings=parse_settings(args.setting) or None)
+    print(f"estimated cost: {est.describe()}", flush=True)
+    return est
 
 
 def _vector(text):
@@ -158,8 +189,8 @@ def _vector(text):
         v = [float(x) for x in text.split(",")]
     except ValueError:
         raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz") from None
-    if len(v) != 3:
-        raise UserError(f"--velocity {text!r}: expected three numbers vx,vy,vz")
+    if len(v) != 3 or not all(abs(x) < float("inf") for x in v):
+        raise UserError(f"--velocity {text!r}: expected three finite numbers vx,vy,vz (m/s)")
     return v
 
 

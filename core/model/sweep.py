@@ -149,8 +149,7 @@ class AlphaSweep:
 
         arrays = {k: getattr(self, k) for k in self._ARRAYS if getattr(self, k) is not None}
         save_npz(path, format=SWEEP_FORMAT, alphas=self.alphas, occupancy=np.packbits(self.occupancy.ravel()),
-                            geometry=json.dumps(self.geometry.to_dict()), meta=json.dumps(self.meta, default=str),
-                            **arrays)
+                 geometry=json.dumps(self.geometry.to_dict()), meta=json.dumps(self.meta, default=str), **arrays)
         return path
 
     @classmethod
@@ -200,7 +199,5 @@ def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_
     sweep = AlphaSweep.from_prediction(pred, grid)
     sweep.meta.update({"checkpoint": predictor.checkpoint, "seconds": pred.seconds})
     if path is not None:
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        sweep.save(tmp)
-        tmp.replace(path)
+        sweep.save(path)  # atomic, with a unique temporary name (two processes may fill the cache at once)
     return sweep
