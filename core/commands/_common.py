@@ -33,6 +33,21 @@ def positive_int(text: str) -> int:
     return x
 
 
+SEED_LIMIT = 2 ** 32
+"""Seeds are whole numbers in [0, 2³²) (what numpy's and torch's generators take everywhere)."""
+
+
+def seed(text: str) -> int:
+    """A random seed: a whole number in [0, 2³²)."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {text!r}") from None
+    if not 0 <= x < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected a whole number in [0, 2^32), got {x}")
+    return x
+
+
 def shard(text: str) -> tuple[int, int]:
     """``i/n`` with 0 <= i < n (0-based shard index)."""
     try:

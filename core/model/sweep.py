@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import UserError
 from ..paths import cache_dir, content_key
 from ..progress import Progress
-from ..types import FeatureGrid, GridGeometry, MaterialField
+from ..types import FeatureGrid, GridGeometry, MaterialField, unpack_occupancy
 from .inference import DEFAULT_STEPS, DEFAULT_SWEEP_COUNT, LBSPrediction, Prediction, Predictor, SpringPrediction
 
 SWEEP_FORMAT = "unipixie.alpha_sweep/1"
@@ -163,8 +163,7 @@ class AlphaSweep:
         if str(d.get("format", "")) != SWEEP_FORMAT:
             raise UserError(f"{path}: 'format' is {str(d.get('format', ''))!r}, expected {SWEEP_FORMAT!r}")
         geo = GridGeometry(**json.loads(str(d["geometry"])))
-        R = geo.resolution
-        occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
+        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
         arrays = {k: d[k] for k in cls._ARRAYS if k in d}
         return cls(d["alphas"], geo, occ, meta=json.loads(str(d["meta"])), **arrays)
 

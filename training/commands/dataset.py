@@ -25,7 +25,7 @@ def add_arguments(p):
     b.add_argument("--count", type=_common.positive_int, required=True, metavar="N", help="objects in the whole dataset")
     b.add_argument("--shard", type=_common.shard, default=(0, 1), metavar="i/n",
                    help="build only objects with index ≡ i (mod n) (default 0/1 = all)")
-    b.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
+    b.add_argument("--seed", type=_common.seed, default=0, help="base seed (default 0)")
     b.add_argument("--classes", metavar="A,B,...", help="semantic classes to cycle through (default: all ten)")
     b.add_argument("--resolution", type=_common.positive_int, default=64, metavar="R", help="grid voxels per side (default 64)")
     b.add_argument("--views", type=_common.positive_int, default=8, metavar="N", help="rendered views per object (default 8)")
