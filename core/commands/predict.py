@@ -37,7 +37,7 @@ def add_arguments(p):
 def run(args) -> int:
     from pathlib import Path
 
-    from ..atomic_io import OutputLock, check_writable, write_error
+    from ..atomic_io import OutputLock, check_writable, refuse_overwriting_inputs, write_error
     from ..errors import UserError
     from ..model.inference import DEFAULT_STEPS, Predictor, canonical_heads
     from ..types import FeatureGrid
@@ -51,6 +51,11 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {args.out} is an existing file; --out names a folder for the prediction files")
     check_writable(out, directory=True, what="output folder")
+    alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]
+    names = ["alpha_sweep.npz"] if args.sweep is not None else ["prediction.json"] + [
+        f"{kind}_a{a:.3f}.npz" for a in alphas for kind in ("material_field", "lbs", "spring")]
+    for name in names:  # an existing output that is (a link to) the grid would overwrite it
+        refuse_overwriting_inputs(out / name, [args.grid], what="output file")
     grid = FeatureGrid.load(args.grid)
     predictor = Predictor.load(args.checkpoint, device=args.device)
     try:
@@ -75,7 +80,7 @@ def _predict(args, out, grid, predictor, heads, steps) -> int:
             path = sweep.save(out / "alpha_sweep.npz")
             print(f"wrote the {len(sweep.alphas)}-value alpha sweep to {path}")
             return 0
-        alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]
+        alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]  # as checked
         pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress)
     summary = {"checkpoint": predictor.checkpoint, "grid": str(args.grid), "seed": args.seed, "steps": steps,
                "seconds": pred.seconds, "device": str(predictor.device), "alphas": []}
