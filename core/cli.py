@@ -213,8 +213,17 @@ def interrupt_guard(prefix: str = "unipixie"):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def finish(status: int) -> int:
+    """The exit status of a command-line process, handed to ``sys.exit``.  After a cancellation the process only
+    exits: a late Ctrl-C (the second press arriving after the cleanup ended) is ignored instead of killing the
+    interpreter's shutdown with a signal (the status would then read -2, or a traceback appear)."""
+    if status == EXIT_CANCELLED and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return status
+
+
 def entry_point() -> None:  # pragma: no cover - console script of installs made before unipixie.cli:entry_point
     """Core's commands only: the ``unipixie`` script of an install older than the layered command line (which
     pointed here).  Re-installing (``setup.sh``: ``pip install -e .``) points the script at
     :func:`unipixie.cli.entry_point`, every layer's commands."""
-    sys.exit(main())
+    sys.exit(finish(main()))

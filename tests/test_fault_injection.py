@@ -732,3 +732,13 @@ def test_an_error_that_follows_ctrl_c_is_a_cancellation_not_a_bug(capsys):
         raise NameError("a real bug")
 
     assert cli.run_command(bug, None, "measure") == EXIT_INTERNAL_ERROR  # without Ctrl-C a bug stays a bug
+
+
+def test_a_ctrl_c_after_the_cancellation_is_ignored_while_the_process_exits():
+    """The fault matrix's second Ctrl-C sometimes arrived after the first had already cancelled the run: the
+    interpreter's shutdown died of the signal (status -2).  After a cancellation the process only exits, 130."""
+    code = ("import os, signal, sys; from unipixie.core import cli; status = cli.finish(130); "
+            "os.kill(os.getpid(), signal.SIGINT); sys.exit(status)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert r.returncode == EXIT_CANCELLED and "Traceback" not in r.stderr, r.stderr
