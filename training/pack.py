@@ -61,7 +61,7 @@ if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie
 import numpy as np  # noqa: E402
 
 from ..core.atomic_io import write_json  # noqa: E402
-from ..core.errors import UserError  # noqa: E402
+from ..core.errors import UserError, read_json  # noqa: E402
 
 PACK_FORMAT = "unipixie.pack/1"
 INDEX_FILE = "index.json"
@@ -244,7 +244,9 @@ def read_index(pack_dir) -> dict:
     p = Path(pack_dir) / INDEX_FILE
     if not p.is_file():
         raise UserError(f"{pack_dir}: no {INDEX_FILE}; not a pack directory (or the transfer is incomplete)")
-    idx = json.loads(p.read_text())
+    idx = read_json(p)
+    if not isinstance(idx, dict):
+        raise UserError(f"{p}: expected a JSON object (the pack's index), got {type(idx).__name__}")
     if idx.get("format") != PACK_FORMAT:
         raise UserError(f"{p}: format {idx.get('format')!r}, expected {PACK_FORMAT!r}")
     for part in idx["parts"]:
