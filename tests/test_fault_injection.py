@@ -742,3 +742,21 @@ def test_a_ctrl_c_after_the_cancellation_is_ignored_while_the_process_exits():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert r.returncode == EXIT_CANCELLED and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("change, needle", [
+    (lambda t: t.replace("v 0 0 0", "v nan 0 0"), "three finite coordinates"),   # Blender read nan as 0
+    (lambda t: t.replace("v 1 1 1", "v inf 1 1"), "three finite coordinates"),
+    (lambda t: t + "f 1 2 99\n", "names vertex 99"),                            # Blender dropped the face
+    (lambda t: t + "f 0 1 2\n", "does not exist"),
+])
+def test_an_obj_that_blender_would_quietly_change_is_refused(change, needle, tmp_path):
+    from unipixie.core.blender_io.scene_import import check_obj_file
+
+    cube = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + \
+        "f 1 2 4 3\nf 5 7 8 6\nf 1/1 5/2 6/3 2/4\nf -1 -2 -3\n"
+    (tmp_path / "ok.obj").write_text(cube)
+    check_obj_file(tmp_path / "ok.obj")
+    (tmp_path / "bad.obj").write_text(change(cube))
+    with pytest.raises(UserError, match=needle):
+        check_obj_file(tmp_path / "bad.obj")
