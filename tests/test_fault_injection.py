@@ -760,3 +760,40 @@ def test_an_obj_that_blender_would_quietly_change_is_refused(change, needle, tmp
     (tmp_path / "bad.obj").write_text(change(cube))
     with pytest.raises(UserError, match=needle):
         check_obj_file(tmp_path / "bad.obj")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["bench", "lbs", "--steps", "0"], "--steps"),                    # was the default (30 steps), exit 0
+    (["bench", "spring", "--duration", "0"], "--duration"),
+    (["bench", "mpm", "--substeps", "0"], "--substeps"),              # was minutes of the default
+    (["bench", "diagnose", "--runs", "0"], "--runs"),                 # was silently one long run
+    (["bench", "bake", "--subdivisions", "20"], "--subdivisions 20"),  # was a hang (terabytes)
+    (["doctor", "--skip-extension", "--blender", "/nonexistent/blender"], "--blender"),  # was ignored, exit 0
+    (["doctor", "--blender", "/nonexistent/blender"], "does not exist"),
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--fps", "0"], "--fps"),  # was built with fps 0 ignored
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--tracked-points", "-1"], "--tracked-points"),
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--classes", ""], "--classes"),  # was every class
+])
+def test_commands_refuse_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
+    from unipixie import cli as root_cli
+
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv] + (["--out", str(tmp_path / "b.json")]
+                                                               if argv[0] == "bench" else [])
+    try:
+        status = root_cli.main(argv)
+    except SystemExit as exc:  # argparse's one-line refusal
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert not (tmp_path / "b.json").exists() and not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("index", ["{bad json", "[1, 2]"])
+def test_a_corrupt_pack_index_is_one_line(index, tmp_path, capsys):
+    from unipixie import cli as root_cli
+
+    (tmp_path / "pk").mkdir()
+    (tmp_path / "pk" / "index.json").write_text(index)
+    assert root_cli.main(["dataset", "unpack", str(tmp_path / "pk"), str(tmp_path / "out")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "index.json" in err and "internal error" not in err, err  # was JSONDecodeError / AttributeError
