@@ -136,8 +136,8 @@ def run_command(fn, args, command: str) -> int:
             try:
                 status = fn(args)
             except Exception as exc:
-                if not presses:
-                    raise
+                if not presses or getattr(exc, "exit_code", None) == EXIT_CANCELLED:
+                    raise  # no Ctrl-C, or the command's own cancellation (its message is printed below)
                 # Ctrl-C was pressed: its KeyboardInterrupt may have landed inside a library (an import half done,
                 # a handler that swallowed it) and come out as another error; the run was cancelled all the same
                 if not isinstance(exc, UserError):
