@@ -797,3 +797,37 @@ def test_a_corrupt_pack_index_is_one_line(index, tmp_path, capsys):
     assert root_cli.main(["dataset", "unpack", str(tmp_path / "pk"), str(tmp_path / "out")]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert "index.json" in err and "internal error" not in err, err  # was JSONDecodeError / AttributeError
+
+
+def test_two_benchmarks_recording_into_one_file_take_turns(tmp_path):
+    """``record`` merges into benchmarks/<name>.json (read, merge, write): a second recorder waits for the first
+    instead of overwriting its results (or being refused after a long benchmark)."""
+    from unipixie.core import benchmarks
+
+    path = tmp_path / "b.json"
+    entry = lambda case: {"case": case, "device": "cpu", "metric": "m", "value": 1.0, "runs": 1}  # noqa: E731
+    benchmarks.record("b", [entry("first")], path)
+    holder = atomic_io.OutputLock(path, "benchmark file").acquire()
+    done = []
+    import threading
+
+    t = threading.Thread(target=lambda: done.append(benchmarks.record("b", [entry("second")], path)))
+    t.start()
+    time.sleep(0.5)
+    assert not done  # waiting for the holder
+    holder.release()
+    t.join(10)
+    assert done and {r["case"] for r in json.loads(path.read_text())["results"]} == {"first", "second"}
+    with atomic_io.OutputLock(path, "benchmark file"):
+        with pytest.raises(UserError, match="being written by another UniPixie run"):
+            atomic_io.OutputLock(path, "benchmark file", wait=0.2).acquire()  # waits, then refuses
+
+
+def test_a_second_features_run_writing_the_same_grid_is_refused(tmp_path, capsys):
+    obj = tmp_path / "cube.obj"
+    obj.write_text("".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + "f 1 2 4 3\n")
+    with atomic_io.OutputLock(tmp_path / "g.npz"):  # the first run, still working
+        status = cli.main(["features", str(obj), "--out", str(tmp_path / "g.npz"), "--offline-features"])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "being written by another UniPixie run" in err, err
+    assert not (tmp_path / "g.npz").exists()
