@@ -575,6 +575,7 @@ def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
     (["--spin", "inf"], "--spin"),
     (["--fps", "1e7"], "--allow-long"),                # 2,000,001 instants: was a silent hang
     (["--duration", "1e6", "--fps", "1000"], "--allow-long"),  # was an internal error (a 312 GB allocation)
+    (["--nu", "-1.1"], "Poisson's ratio"),             # the cost estimate must not fail before the material check
 ])
 def test_synth_refuses_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
     status = cli.main(["measure", "synth", "--out", str(tmp_path / "m.npz"), "--solver", "spring_mass",
