@@ -36,8 +36,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def entry_point() -> None:  # pragma: no cover - console script
-    sys.exit(main())
+    sys.exit(_core_cli.finish(main()))
 
 
 if __name__ == "__main__":  # pragma: no cover - `python -m unipixie.cli`
-    raise SystemExit(main())
+    raise SystemExit(_core_cli.finish(main()))

@@ -397,13 +397,16 @@ class OutputLock:
     process or the same one — gets a :class:`UserError` naming the first one's process id.  The
     operating system drops the lock when a process dies, so a crashed run never blocks the next.
 
-    Use as a context manager (``with OutputLock(path): ...``) or with :func:`locked`.
+    Use as a context manager (``with OutputLock(path): ...``) or with :func:`locked`.  ``wait``: seconds to wait
+    for the other run to let go before refusing (for short read-modify-write sections such as a benchmark file's
+    merge; 0, the default, refuses at once).
     """
 
-    def __init__(self, path, what: str = "output"):
+    def __init__(self, path, what: str = "output", wait: float = 0.0):
         self.path = Path(os.path.expanduser(os.fspath(path)))
         self.real = output_path(path)
         self.what = what
+        self.wait = float(wait)
         self.lock_path = self.real.parent / f".{self.real.name}{LOCK_SUFFIX}"
         self._fd: Optional[int] = None
 
@@ -414,7 +417,12 @@ class OutputLock:
             self.real.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise write_error(self.path, exc, f"create the folder of the {self.what}") from None
-        for _ in range(20):
+        import time
+
+        deadline = time.monotonic() + self.wait
+        attempts = 0
+        while attempts < 20:
+            attempts += 1
             try:
                 fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o666)
             except OSError as exc:
@@ -422,6 +430,10 @@ class OutputLock:
             if not _try_lock(fd):
                 holder = _read_pid(fd)
                 os.close(fd)
+                if time.monotonic() < deadline:
+                    attempts -= 1  # waiting for the holder is not a changing lock file
+                    time.sleep(0.05)
+                    continue
                 who = f" (process {holder})" if holder else ""
                 raise UserError(f"the {self.what} {self.path} is being written by another UniPixie run{who}; wait "
                                 f"for it to finish or choose another {self.what}")

@@ -134,9 +134,12 @@ def parse_frames(text: str) -> FrameRange:
 
 def parse_frame_list(text: str) -> list[FrameRange]:
     """``"1-120,200-260"`` → a batch of frame ranges (each baked as its own simulation)."""
-    parts = [p for p in str(text).split(",") if p.strip()]
-    if not parts:
+    parts = str(text).split(",")
+    if not any(p.strip() for p in parts):
         raise UserError("no frame range given")
+    if not all(p.strip() for p in parts):
+        raise UserError(f"frame ranges {text!r}: an empty range between commas; expected START-END[,START-END...], "
+                        "e.g. 1-120,200-260")
     return [parse_frames(p) for p in parts]
 
 
@@ -355,6 +358,13 @@ class FieldFileSource(MaterialSource):
         if not self.path:
             raise UserError("no material field file given (set one in the panel or pass --material-file)")
         fieldd = MaterialField.load(self.path)
+        from ..solvers.materials import NUM_CLASSES
+
+        bad = fieldd.material[(fieldd.material < 0) | (fieldd.material >= NUM_CLASSES)]
+        if bad.size:
+            raise UserError(f"{self.path}: key 'material' holds class id(s) {sorted(set(bad.tolist()))[:5]} outside "
+                            f"0..{NUM_CLASSES - 1} (the material classes of solvers/materials.py); the file is damaged "
+                            "or was made by another version")
         warnings = []
         if fieldd.meta.get("space") == "world":
             world = fieldd

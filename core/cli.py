@@ -131,9 +131,18 @@ def run_command(fn, args, command: str) -> int:
     """Run ``fn(args)`` with the command line's error handling; returns the exit status (see the module
     docstring)."""
     prefix = f"unipixie {command}"
-    with interrupt_guard(prefix):
+    with interrupt_guard(prefix) as presses:
         try:
-            status = fn(args)
+            try:
+                status = fn(args)
+            except Exception as exc:
+                if not presses or getattr(exc, "exit_code", None) == EXIT_CANCELLED:
+                    raise  # no Ctrl-C, or the command's own cancellation (its message is printed below)
+                # Ctrl-C was pressed: its KeyboardInterrupt may have landed inside a library (an import half done,
+                # a handler that swallowed it) and come out as another error; the run was cancelled all the same
+                if not isinstance(exc, UserError):
+                    _crash_log(command, exc)
+                raise KeyboardInterrupt from None
         except UserError as exc:
             print(f"{prefix}: error: {exc}", file=sys.stderr)
             return exc.exit_code
@@ -183,15 +192,15 @@ def interrupt_guard(prefix: str = "unipixie"):
     written atomically, so even the third leaves no partial file under a final name."""
     if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not \
             signal.default_int_handler:
-        yield
+        yield []
         return
-    presses = [0]
+    presses: list = []
 
     def handler(signum, frame):
-        presses[0] += 1
-        if presses[0] == 1:
+        presses.append(time.monotonic())
+        if len(presses) == 1:
             raise KeyboardInterrupt
-        if presses[0] == 2:
+        if len(presses) == 2:
             print(f"\n{prefix}: cancelling: cleaning up so that nothing is left half-written "
                   "(press Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
             return
@@ -199,13 +208,22 @@ def interrupt_guard(prefix: str = "unipixie"):
 
     signal.signal(signal.SIGINT, handler)
     try:
-        yield
+        yield presses
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def finish(status: int) -> int:
+    """The exit status of a command-line process, handed to ``sys.exit``.  After a cancellation the process only
+    exits: a late Ctrl-C (the second press arriving after the cleanup ended) is ignored instead of killing the
+    interpreter's shutdown with a signal (the status would then read -2, or a traceback appear)."""
+    if status == EXIT_CANCELLED and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return status
 
 
 def entry_point() -> None:  # pragma: no cover - console script of installs made before unipixie.cli:entry_point
     """Core's commands only: the ``unipixie`` script of an install older than the layered command line (which
     pointed here).  Re-installing (``setup.sh``: ``pip install -e .``) points the script at
     :func:`unipixie.cli.entry_point`, every layer's commands."""
-    sys.exit(main())
+    sys.exit(finish(main()))

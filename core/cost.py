@@ -35,7 +35,7 @@ ALLOW_LONG_FLAG = "--allow-long"
 
 def wave_speed(E: float, nu: float, density: float) -> float:
     """P-wave speed (m/s) ``sqrt((λ + 2μ)/ρ)`` of an isotropic solid (E Pa, ν, ρ kg/m³)."""
-    nu = min(float(nu), 0.499)
+    nu = min(max(float(nu), -0.999), 0.499)  # an estimate: impossible ν are refused by the material's own check
     factor = (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
     return math.sqrt(max(float(E), 0.0) * factor / max(float(density), 1e-12))
 
@@ -50,13 +50,23 @@ def material_bounds(spec) -> tuple[float, float, float]:
 
 
 def _setting(settings, name: str, default):
+    """The number ``settings[name]`` (``default`` when absent or None); a value that is not a finite number is a
+    :class:`UserError` naming the setting (the estimate runs before the solver checks its settings)."""
     if settings is None:
         return default
     if isinstance(settings, dict):
         v = settings.get(name, default)
     else:
         v = getattr(settings, name, default)
-    return default if v is None else v
+    if v is None:
+        return default
+    try:
+        number = float(v)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(v, bool) or not math.isfinite(number):
+        raise UserError(f"setting '{name}' must be a finite number, got {v!r}")
+    return v
 
 
 def substep_seconds(solver: str, size: float, E: float, nu: float, density: float, settings=None) -> float:
@@ -66,7 +76,7 @@ def substep_seconds(solver: str, size: float, E: float, nu: float, density: floa
         from ..solvers.mpm import MPMSettings
 
         d = MPMSettings()
-        dx = _setting(settings, "dx", None) or size / max(int(_setting(settings, "cells_across", d.cells_across)), 1)
+        dx = _setting(settings, "dx", None) or size / max(int(float(_setting(settings, "cells_across", d.cells_across))), 1)
         dt = float(_setting(settings, "cfl", d.cfl)) * float(dx) / c
         max_dt = _setting(settings, "max_dt", None)
         return min(dt, float(max_dt)) if max_dt else dt
@@ -74,7 +84,7 @@ def substep_seconds(solver: str, size: float, E: float, nu: float, density: floa
         from ..solvers.spring_mass import SpringMassSettings
 
         d = SpringMassSettings()
-        anchors = max(int(_setting(settings, "anchors", d.anchors)), 1)
+        anchors = max(int(float(_setting(settings, "anchors", d.anchors))), 1)
         return float(_setting(settings, "safety", d.safety)) * size / anchors ** (1.0 / 3.0) / c
     if solver == "lbs":
         from ..solvers.lbs import DEFAULT_MAX_DT

@@ -599,8 +599,11 @@ def contact_sheet(images, captions, path, columns: Optional[int] = None) -> Path
         x, y = (i % cols) * w, (i // cols) * (h + pad)
         sheet.paste(tile, (x, y))
         draw.text((x + 6, y + h + 5), cap, fill=(0, 0, 0))
+    from .atomic_io import atomic_path
+
     path = Path(path)
-    sheet.save(path)
+    with atomic_path(path) as tmp:
+        sheet.save(tmp, format=Image.registered_extensions().get(path.suffix.lower(), "PNG"))
     return path
 
 

@@ -187,9 +187,7 @@ def render_stage(objects, options: FeatureOptions, fingerprint: str | None = Non
     views = yield from render.render_job(objects, settings)
     views.meta["fingerprint"] = fingerprint
     if options.use_cache:
-        tmp = path.with_name(path.stem + ".partial.npz")
-        views.save(tmp)
-        tmp.replace(path)
+        views.save(path)  # atomic, with a unique temporary name
     return views, path
 
 
@@ -248,9 +246,7 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
     grid = features_from_views(views, occ.occupancy, extractor, device=extractor.device, meta=meta, timings=timings)
     grid.meta["seconds"] = {k: round(v, 4) for k, v in timings.items()}
     if options.use_cache:
-        tmp = gpath.with_name(gpath.stem + ".partial.npz")
-        grid.save(tmp)
-        tmp.replace(gpath)
+        grid.save(gpath)  # atomic, with a unique temporary name
     yield 1.0, f"{int(occ.occupancy.sum())} voxels, D = {grid.dim}"
     return FeatureResult(grid=grid, grid_path=gpath, views_path=vpath if vpath.is_file() else None, cache_hit=False,
                          timings=timings, views=views)

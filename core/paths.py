@@ -49,6 +49,14 @@ def cache_dir(kind: str) -> Path:
     return d
 
 
+def save_cached_array(path, array) -> Path:
+    """Store ``array`` in the cache file ``path`` (``.npy``) atomically, through a unique temporary file: two
+    processes filling the same cache entry never share a temporary, and a reader never sees half a file."""
+    from .atomic_io import save_npy
+
+    return save_npy(path, array)
+
+
 def warp_kernel_cache_dir() -> Path:
     """Warp's kernel cache: ``UNIPIXIE_WARP_CACHE`` if set, else ``<cache root>/warp``."""
     env = os.environ.get("UNIPIXIE_WARP_CACHE")

@@ -711,10 +711,7 @@ def _key(*parts) -> str:
 
 
 def _atomic_save(sweep, path: Path) -> Path:
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    sweep.save(tmp)
-    tmp.replace(path)
-    return path
+    return sweep.save(path)  # atomic (core/atomic_io.py), with a unique temporary name
 
 
 # --------------------------------------------------------------------------- the model's material at α

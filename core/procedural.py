@@ -154,9 +154,9 @@ class ProceduralObject:
                 tet.apply_transform(Z_UP_TO_GLTF)
                 scene.add_geometry(tet, node_name=f"frame_marker_{k}", geom_name=f"frame_marker_{k}")
         data = trimesh.exchange.gltf.export_glb(scene, include_normals=True)
-        path = Path(path)
-        path.write_bytes(data)
-        return path
+        from .atomic_io import write_bytes
+
+        return write_bytes(path, data)
 
     def vertices(self) -> np.ndarray:
         """(V, 3) float64 metres: every component's vertices, parts and components in order."""

@@ -156,6 +156,19 @@ class GridGeometry:
         return {"resolution": self.resolution, "origin": self.origin.tolist(), "voxel_size": self.voxel_size}
 
 
+def unpack_occupancy(packed, resolution: int, path) -> np.ndarray:
+    """(R, R, R) bool occupancy from its ``numpy.packbits`` form; a file whose packed bits cannot hold R³ voxels (a
+    resolution that does not match the archive) is a :class:`UserError` naming ``path``."""
+    packed = np.asarray(packed)
+    R = int(resolution)
+    if packed.dtype != np.uint8 or packed.ndim != 1:
+        raise UserError(f"{path}: key 'occupancy' must be packed bits (uint8, 1-D), got {packed.dtype} {packed.shape}")
+    if packed.size * 8 < R ** 3 or packed.size > (R ** 3 + 7) // 8:
+        raise UserError(f"{path}: key 'occupancy' holds {packed.size * 8} voxel bits, the geometry's resolution {R} "
+                        f"needs {R ** 3}; the file is damaged or was edited")
+    return np.unpackbits(packed)[: R ** 3].astype(bool).reshape(R, R, R)
+
+
 @dataclass
 class FeatureGrid:
     """Per-voxel visual features of one object (the model's input).
@@ -205,8 +218,7 @@ class FeatureGrid:
             geo = GridGeometry(**_json_key(d, "geometry", path))
         except TypeError as exc:
             raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
-        R = geo.resolution
-        occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
+        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
         return cls(geometry=geo, occupancy=occ, features=d["features"], feature_model=str(d["feature_model"]),
                    meta=_json_key(d, "meta", path))
 
@@ -270,8 +282,7 @@ class MaterialField:
             geo = GridGeometry(**_json_key(d, "geometry", path))
         except TypeError as exc:
             raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
-        R = geo.resolution
-        occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
+        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
         return cls(geo, occ, d["E"], d["nu"], d["density"], d["material"], float(d["alpha"]), _json_key(d, "meta", path))
 
 

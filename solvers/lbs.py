@@ -234,7 +234,7 @@ def lift_basis(weights: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
 def fitted_skinning(points: np.ndarray, volumes: np.ndarray, E: np.ndarray, nu: np.ndarray, bounds: np.ndarray,
                     settings: LBSSettings, progress: Progress | None = None) -> np.ndarray:
     """Skinning parameters fitted for a solid, from the on-disk cache when available."""
-    from ..core.paths import cache_dir, content_key
+    from ..core.paths import cache_dir, content_key, save_cached_array
 
     key = content_key("lbs-skinning/1", np.asarray(points, np.float64), np.asarray(volumes, np.float64),
                       np.asarray(E, np.float64), np.asarray(nu, np.float64), np.asarray(bounds, np.float64),
@@ -250,9 +250,10 @@ def fitted_skinning(points: np.ndarray, volumes: np.ndarray, E: np.ndarray, nu: 
     params = fit_skinning(points, volumes, E, nu, bounds=bounds, handles=settings.handles,
                           iterations=settings.fit_iterations, progress=progress)
     if settings.cache_skinning:
-        tmp = path.with_suffix(".tmp.npy")
-        np.save(tmp, params)
-        tmp.replace(path)
+        try:
+            save_cached_array(path, params)
+        except UserError:  # a cache that cannot be written (full disk): the fit is still good for this run
+            pass
     return params
 
 

@@ -575,6 +575,7 @@ def test_a_second_ctrl_c_while_cleaning_up_only_says_so():
     (["--spin", "inf"], "--spin"),
     (["--fps", "1e7"], "--allow-long"),                # 2,000,001 instants: was a silent hang
     (["--duration", "1e6", "--fps", "1000"], "--allow-long"),  # was an internal error (a 312 GB allocation)
+    (["--nu", "-1.1"], "Poisson's ratio"),             # the cost estimate must not fail before the material check
 ])
 def test_synth_refuses_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
     status = cli.main(["measure", "synth", "--out", str(tmp_path / "m.npz"), "--solver", "spring_mass",
@@ -745,3 +746,227 @@ def test_numbers_as_text_are_refused_in_every_json_input(tmp_path):
     with pytest.raises(UserError, match="scenario key 'material' entry 'E' must hold numbers"):
         Measurement(positions=m.positions, times=m.times, scenario={**m.scenario_dict(), "material": {
             "E": "2e5", "nu": 0.3, "density": 1000.0}}, rest_positions=m.rest)
+
+
+# --------------------------------------------------------------------------- one writer (issue 20, item 1)
+_DIRECT_WRITE = __import__("re").compile(
+    r"np\.savez|\.savefig\(|save_as_mainfile\(|\.write_text\(|\.write_bytes\(|np\.save\(|save_file\(|json\.dump\(|"
+    r"open\([^)]*['\"](?:w|wb|a|ab|x|w\+)['\"]|\.tmp[\"']|\.partial\.|\.save\(\w*tmp\b")
+_ALLOWED_DIRECT_WRITES = {
+    # (file, text on the line): why it is not a bypass
+    ("core/model/checkpoint.py", "save_file(tensors, str(tmp)"): "inside atomic_path",
+    ("core/blender_io/blend_file.py", "save_as_mainfile(filepath=str(tmp)"): "inside atomic_path",
+    ("core/blender_io/blend_file.py", "save_as_mainfile(filepath=str(real)"): "after the verified copy; Blender's PATH@",
+    ("core/blender_io/extension_check.py", 'os.fdopen(fd, "w")'): "standalone script: its own mkstemp + rename",
+    ("core/blender_io/extension_check.py", "json.dump(report, f"): "standalone script: its own mkstemp + rename",
+    ("core/demo.py", "sheet.save(tmp"): "inside atomic_path",
+    ("training/pack.py", "np.savez_compressed(buf"): "into memory",
+    ("training/pack.py", "open(tmp_parts[name]"): "a unique mkstemp part, size-checked, renamed",
+    ("training/pack.py", "tempfile.mkstemp(prefix="): "a unique temporary name",
+    ("training/baselines.py", "save_file(state, str(tmp))"): "inside atomic_path",
+    ("training/train.py", "save_file(grads, str(tmp)"): "inside atomic_path",
+    ("training/train.py", 'open(out / LOG_FILE, "a")'): "an append-only log, not an output file",
+    ("training/validate_diagnosis.py", 'open(out / "results.jsonl", "a")'): "an append-only log of finished cases",
+}
+
+
+def test_every_output_goes_through_the_atomic_writer():
+    """No module writes a final file directly or through a fixed temporary name (two processes would share it):
+    everything goes through core/atomic_io.py (unique temporary beside the target, checked, renamed)."""
+    found = []
+    for path in sorted(REPO_ROOT.rglob("*.py")):
+        rel = path.relative_to(REPO_ROOT).as_posix()
+        if rel.startswith(("tests/", ".venv/", "build/", "dist/")) or rel == "core/atomic_io.py":
+            continue
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if _DIRECT_WRITE.search(line) and not any(f == rel and text in line for f, text in _ALLOWED_DIRECT_WRITES):
+                found.append(f"{rel}:{n}: {line.strip()}")
+    assert found == [], "writes that bypass core/atomic_io.py:\n" + "\n".join(found)
+
+
+def test_temporary_names_are_unique_per_write(tmp_path):
+    names = set()
+    for _ in range(3):
+        with atomic_io.atomic_path(tmp_path / "x.npz") as tmp:
+            names.add(tmp.name)
+            raise_after = False
+            np.savez(tmp, a=np.zeros(3))
+        assert not raise_after
+    assert len(names) == 3 and all(n.startswith(".x.") and n.endswith(".tmp.npz") for n in names)
+
+
+def test_the_lbs_skinning_cache_is_written_atomically(tmp_path, monkeypatch):
+    from unipixie.core import paths
+
+    target = tmp_path / "k.npy"
+    monkeypatch.setattr(np.lib.format, "write_array", _enospc_after(10))
+    with pytest.raises(UserError, match="disk is full"):
+        paths.save_cached_array(target, np.arange(5.0))
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    paths.save_cached_array(target, np.arange(5.0))
+    assert np.load(target).tolist() == [0, 1, 2, 3, 4]
+
+
+# --------------------------------------------------------------------------- found by the fault matrix (round 2)
+def test_a_grid_whose_resolution_does_not_match_its_bits_is_one_line(tmp_path):
+    from unipixie.core.types import FeatureGrid, GridGeometry, MaterialField
+
+    R = 8
+    occ = np.zeros((R, R, R), bool)
+    occ[2:5, 2:5, 2:5] = True
+    geo = GridGeometry(resolution=R, origin=[0, 0, 0], voxel_size=0.1)
+    FeatureGrid(geo, occ, np.zeros((int(occ.sum()), 4), np.float16), "offline-random-vit-w32").save(tmp_path / "g.npz")
+    MaterialField.homogeneous(geo, occ, 2e5, 0.3, 800.0).save(tmp_path / "f.npz")
+    for name, cls in (("g.npz", FeatureGrid), ("f.npz", MaterialField)):
+        with np.load(tmp_path / name) as d:
+            arrays = {k: d[k] for k in d.files}
+        arrays["geometry"] = np.array(json.dumps({"resolution": 100000, "origin": [0, 0, 0], "voxel_size": 0.1}))
+        np.savez(tmp_path / f"bad_{name}", **arrays)
+        with pytest.raises(UserError, match="resolution 100000"):
+            cls.load(tmp_path / f"bad_{name}")  # was ValueError: cannot reshape
+
+
+def test_a_solver_setting_that_is_not_a_number_is_named_by_the_cost_estimate():
+    from unipixie.core.cost import estimate
+    from unipixie.core.types import MaterialField  # noqa: F401 - the estimate reads E, nu, density
+
+    spec = type("M", (), {"E": 2e5, "nu": 0.3, "density": 1000.0})
+    with pytest.raises(UserError, match="setting 'anchors' must be a finite number, got 'abc'"):
+        estimate("x", "spring_mass", size=0.1, times=np.linspace(0, 1, 5), material_spec=spec, points=8,
+                 settings={"anchors": "abc"})  # was ValueError from int('abc')
+
+
+def test_predict_refuses_a_negative_seed_and_an_output_linked_to_its_grid(tmp_path, capsys):
+    grid = tmp_path / "grid.npz"
+    grid.write_bytes(b"not looked at: the refusals come first")
+    with pytest.raises(SystemExit) as info:  # an argument error: argparse's one line, status 2
+        cli.main(["predict", str(grid), "--seed", "-1", "--out", str(tmp_path / "p")])
+    assert info.value.code == EXIT_BAD_INPUT and "--seed" in capsys.readouterr().err  # was exit 0
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "material_field_a0.500.npz").symlink_to(grid)
+    assert cli.main(["predict", str(grid), "--out", str(tmp_path / "p")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "would overwrite the input" in err and "symbolic link" in err
+    assert grid.read_bytes() == b"not looked at: the refusals come first"
+
+
+def test_an_error_that_follows_ctrl_c_is_a_cancellation_not_a_bug(capsys):
+    """A KeyboardInterrupt that lands inside a library (an import half done) can come out as another exception
+    (the fault matrix met NameError from scipy.ndimage): after Ctrl-C the run is cancelled (130), never 'a bug'."""
+    def work(args):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass  # a library swallowed it ...
+        raise NameError("name '_ndimage_api' is not defined")  # ... and failed later
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert cli.run_command(work, None, "measure") == EXIT_CANCELLED
+    err = capsys.readouterr().err
+    assert err.strip().endswith("unipixie measure: cancelled") and "internal error" not in err
+
+    def bug(args):
+        raise NameError("a real bug")
+
+    assert cli.run_command(bug, None, "measure") == EXIT_INTERNAL_ERROR  # without Ctrl-C a bug stays a bug
+
+
+def test_a_ctrl_c_after_the_cancellation_is_ignored_while_the_process_exits():
+    """The fault matrix's second Ctrl-C sometimes arrived after the first had already cancelled the run: the
+    interpreter's shutdown died of the signal (status -2).  After a cancellation the process only exits, 130."""
+    code = ("import os, signal, sys; from unipixie.core import cli; status = cli.finish(130); "
+            "os.kill(os.getpid(), signal.SIGINT); sys.exit(status)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert r.returncode == EXIT_CANCELLED and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("change, needle", [
+    (lambda t: t.replace("v 0 0 0", "v nan 0 0"), "three finite coordinates"),   # Blender read nan as 0
+    (lambda t: t.replace("v 1 1 1", "v inf 1 1"), "three finite coordinates"),
+    (lambda t: t + "f 1 2 99\n", "names vertex 99"),                            # Blender dropped the face
+    (lambda t: t + "f 0 1 2\n", "does not exist"),
+])
+def test_an_obj_that_blender_would_quietly_change_is_refused(change, needle, tmp_path):
+    from unipixie.core.blender_io.scene_import import check_obj_file
+
+    cube = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + \
+        "f 1 2 4 3\nf 5 7 8 6\nf 1/1 5/2 6/3 2/4\nf -1 -2 -3\n"
+    (tmp_path / "ok.obj").write_text(cube)
+    check_obj_file(tmp_path / "ok.obj")
+    (tmp_path / "bad.obj").write_text(change(cube))
+    with pytest.raises(UserError, match=needle):
+        check_obj_file(tmp_path / "bad.obj")
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["bench", "lbs", "--steps", "0"], "--steps"),                    # was the default (30 steps), exit 0
+    (["bench", "spring", "--duration", "0"], "--duration"),
+    (["bench", "mpm", "--substeps", "0"], "--substeps"),              # was minutes of the default
+    (["bench", "diagnose", "--runs", "0"], "--runs"),                 # was silently one long run
+    (["bench", "bake", "--subdivisions", "20"], "--subdivisions 20"),  # was a hang (terabytes)
+    (["doctor", "--skip-extension", "--blender", "/nonexistent/blender"], "--blender"),  # was ignored, exit 0
+    (["doctor", "--blender", "/nonexistent/blender"], "does not exist"),
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--fps", "0"], "--fps"),  # was built with fps 0 ignored
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--tracked-points", "-1"], "--tracked-points"),
+    (["dataset", "build", "{tmp}/ds", "--count", "1", "--classes", ""], "--classes"),  # was every class
+])
+def test_commands_refuse_what_the_fault_matrix_found(argv, needle, tmp_path, capsys):
+    from unipixie import cli as root_cli
+
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv] + (["--out", str(tmp_path / "b.json")]
+                                                               if argv[0] == "bench" else [])
+    try:
+        status = root_cli.main(argv)
+    except SystemExit as exc:  # argparse's one-line refusal
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
+    assert not (tmp_path / "b.json").exists() and not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("index", ["{bad json", "[1, 2]"])
+def test_a_corrupt_pack_index_is_one_line(index, tmp_path, capsys):
+    from unipixie import cli as root_cli
+
+    (tmp_path / "pk").mkdir()
+    (tmp_path / "pk" / "index.json").write_text(index)
+    assert root_cli.main(["dataset", "unpack", str(tmp_path / "pk"), str(tmp_path / "out")]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "index.json" in err and "internal error" not in err, err  # was JSONDecodeError / AttributeError
+
+
+def test_two_benchmarks_recording_into_one_file_take_turns(tmp_path):
+    """``record`` merges into benchmarks/<name>.json (read, merge, write): a second recorder waits for the first
+    instead of overwriting its results (or being refused after a long benchmark)."""
+    from unipixie.core import benchmarks
+
+    path = tmp_path / "b.json"
+    entry = lambda case: {"case": case, "device": "cpu", "metric": "m", "value": 1.0, "runs": 1}  # noqa: E731
+    benchmarks.record("b", [entry("first")], path)
+    holder = atomic_io.OutputLock(path, "benchmark file").acquire()
+    done = []
+    import threading
+
+    t = threading.Thread(target=lambda: done.append(benchmarks.record("b", [entry("second")], path)))
+    t.start()
+    time.sleep(0.5)
+    assert not done  # waiting for the holder
+    holder.release()
+    t.join(10)
+    assert done and {r["case"] for r in json.loads(path.read_text())["results"]} == {"first", "second"}
+    with atomic_io.OutputLock(path, "benchmark file"):
+        with pytest.raises(UserError, match="being written by another UniPixie run"):
+            atomic_io.OutputLock(path, "benchmark file", wait=0.2).acquire()  # waits, then refuses
+
+
+def test_a_second_features_run_writing_the_same_grid_is_refused(tmp_path, capsys):
+    obj = tmp_path / "cube.obj"
+    obj.write_text("".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + "f 1 2 4 3\n")
+    with atomic_io.OutputLock(tmp_path / "g.npz"):  # the first run, still working
+        status = cli.main(["features", str(obj), "--out", str(tmp_path / "g.npz"), "--offline-features"])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "being written by another UniPixie run" in err, err
+    assert not (tmp_path / "g.npz").exists()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ HERE = Path(__file__).resolve().parent
 def matrix():
     spec = importlib.util.spec_from_file_location("run_matrix", HERE / "fault_matrix" / "run_matrix.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up while the file runs
     spec.loader.exec_module(mod)
     return mod
 
@@ -66,10 +68,21 @@ def test_the_harness_catches_what_it_is_for(matrix, fixtures, tmp_path):
     r = matrix.run_case(Case("x.input", "t", ["measure", "convert", "{d}/m.npz", "{d}/o.csv", "--force"], expect=matrix.OK,
                              files={"m.npz": "@m.npz", "o.csv": "old"}), tmp_path, fx, env, False)
     assert "input_changed" in r["problems"]
-    # an output present after a refusal, and an unreadable one after success
-    r = matrix.run_case(Case("x.partial", "t", ["measure", "convert", "{d}/m.npz", "{d}/o.csv"], expect=matrix.BAD,
+    # an output present after a refusal, and an unreadable one after success: a stand-in command that writes a cut-off
+    # archive under the final name, then exits with the given status
+    cut = (fx / "m.npz").read_bytes()[:300]
+    for status, expect in ((2, matrix.BAD), (0, matrix.OK)):
+        script = f"import sys; open(sys.argv[1], 'wb').write({cut!r}); sys.exit({status})"
+        fake = lambda *argv, script=script: [sys.executable, "-c", script, *argv]  # noqa: E731
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(matrix, "_cli", fake)
+            r = matrix.run_case(Case(f"x.partial{status}", "t", ["{d}/o.npz"], expect=expect, outputs=["o.npz"]),
+                                tmp_path, fx, env, False)
+        assert r["problems"] == ["partial_output"], r
+    # a success where a refusal was expected: only the exit status is wrong (its output reads well)
+    r = matrix.run_case(Case("x.both", "t", ["measure", "convert", "{d}/m.npz", "{d}/o.csv"], expect=matrix.BAD,
                              files={"m.npz": "@m.npz"}, outputs=["o.csv"]), tmp_path, fx, env, False)
-    assert "partial_output" in r["problems"] and "exit_code" in r["problems"]
+    assert r["problems"] == ["exit_code"] and r["observed"]["exit"] == 0
     assert matrix.readable(_write(tmp_path / "cut.npz", (fx / "m.npz").read_bytes()[:300])) is not None
     assert matrix.readable(_write(tmp_path / "cut.json", b'{"a": ')) is not None
     assert matrix.readable(fx / "m.npz") is None

@@ -41,6 +41,7 @@ if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie
 
 import numpy as np  # noqa: E402
 
+from ..core.atomic_io import atomic_path, write_json  # noqa: E402
 from ..core.errors import UserError  # noqa: E402
 
 BASELINE_FORMAT = "unipixie.baseline/1"
@@ -333,13 +334,10 @@ def save(net, cfg: UNetConfig, out, info: dict) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
-    tmp = out / ".baseline.safetensors.tmp"
-    save_file(state, str(tmp))
-    tmp.replace(out / "baseline.safetensors")
+    with atomic_path(out / "baseline.safetensors") as tmp:
+        save_file(state, str(tmp))
     doc = {"format": BASELINE_FORMAT, "config": asdict(cfg), "info": info}
-    tmpj = out / ".baseline.json.tmp"
-    tmpj.write_text(json.dumps(doc, indent=1, default=str))
-    tmpj.replace(out / "baseline.json")
+    write_json(out / "baseline.json", doc, indent=1, default=str)
     return out
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
@@ -37,6 +36,7 @@ from typing import Iterable, Optional
 
 import numpy as np
 
+from ..core.atomic_io import save_npz, write_text
 from ..core.errors import CancelledError, UserError, read_json
 from ..core.progress import Progress
 from ..core import annotation as ann_mod
@@ -154,20 +154,12 @@ def shard_indices(count: int, shard: tuple[int, int] = (0, 1)) -> list[int]:
 
 
 # =========================================================================== atomic files
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
 def _atomic_write_text(path: Path, text: str) -> None:
-    _atomic_write_bytes(path, text.encode())
+    write_text(path, text)
 
 
 def _atomic_savez(path: Path, **arrays) -> None:
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    tmp.replace(path)
+    save_npz(path, **arrays)
 
 
 # =========================================================================== per-object data
@@ -297,9 +289,7 @@ def build_object(root: Path, index: int, settings: BuildSettings, renderer: Rend
     odir = root / "objects" / obj.object_id
     odir.mkdir(parents=True, exist_ok=True)
     glb = odir / "object.glb"
-    tmp_glb = odir / f".object.{os.getpid()}.tmp.glb"
-    obj.export_glb(tmp_glb)
-    tmp_glb.replace(glb)
+    obj.export_glb(glb)  # atomic (core/atomic_io.py)
     _atomic_write_text(odir / "annotation.json", obj.annotation.to_json())
     timings["generate"] = time.perf_counter() - t
 

@@ -47,7 +47,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie`
@@ -58,7 +60,8 @@ if __package__ in (None, ""):  # run as a file: import the checkout as `unipixie
 
 import numpy as np  # noqa: E402
 
-from ..core.errors import UserError  # noqa: E402
+from ..core.atomic_io import write_json  # noqa: E402
+from ..core.errors import UserError, read_json  # noqa: E402
 
 PACK_FORMAT = "unipixie.pack/1"
 INDEX_FILE = "index.json"
@@ -179,6 +182,7 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
     objects, parts = [], []
     fh, cur, cur_size = None, -1, 0
     largest = 0
+    tmp_parts: dict = {}  # part name -> its unique temporary file (renamed once every part is whole)
     try:
         for split in splits:
             for oid in ds.ids(split):
@@ -192,7 +196,8 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
                     cur += 1
                     name = f"part-{cur:03d}.bin"
                     parts.append({"file": name, "bytes": 0})
-                    fh = open(out / f".{name}.tmp", "wb")
+                    tmp_parts[name] = Path(tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out)[1])
+                    fh = open(tmp_parts[name], "wb")
                     cur_size = 0
                 fh.write(blob)
                 objects.append({"object_id": oid, "split": split, "part": parts[-1]["file"], "offset": cur_size,
@@ -201,11 +206,24 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
                 parts[-1]["bytes"] = cur_size
                 if progress is not None:
                     progress.step(1.0, oid)
+        if fh is not None:
+            fh.close()
+            fh = None
+        for p in parts:
+            size = tmp_parts[p["file"]].stat().st_size
+            if size != p["bytes"]:
+                raise UserError(f"cannot write {out / p['file']}: {size} bytes written, {p['bytes']} expected (is the "
+                                "disk full?)")
+            os.replace(tmp_parts.pop(p["file"]), out / p["file"])
+    except OSError as exc:
+        from ..core.atomic_io import write_error
+
+        raise write_error(out, exc) from None
     finally:
         if fh is not None:
             fh.close()
-    for p in parts:
-        (out / f".{p['file']}.tmp").replace(out / p["file"])
+        for tmp in tmp_parts.values():  # a failure or Ctrl-C: no temporary part left behind
+            tmp.unlink(missing_ok=True)
     first = ds.sample(objects[0]["object_id"]) if objects else None
     index = {"format": PACK_FORMAT, "objects": objects, "parts": parts, "bytes": int(sum(p["bytes"] for p in parts)),
              "count": len(objects), "largest_record_bytes": largest, "part_limit_bytes": part_bytes,
@@ -217,9 +235,7 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
     card = Path(dataset_dir) / "dataset.json"
     if card.is_file():
         index["dataset_card"] = json.loads(card.read_text())
-    tmp = out / f".{INDEX_FILE}.tmp"
-    tmp.write_text(json.dumps(index, indent=1))
-    tmp.replace(out / INDEX_FILE)
+    write_json(out / INDEX_FILE, index, indent=1)
     index["objects"] = len(objects)
     return index
 
@@ -228,7 +244,9 @@ def read_index(pack_dir) -> dict:
     p = Path(pack_dir) / INDEX_FILE
     if not p.is_file():
         raise UserError(f"{pack_dir}: no {INDEX_FILE}; not a pack directory (or the transfer is incomplete)")
-    idx = json.loads(p.read_text())
+    idx = read_json(p)
+    if not isinstance(idx, dict):
+        raise UserError(f"{p}: expected a JSON object (the pack's index), got {type(idx).__name__}")
     if idx.get("format") != PACK_FORMAT:
         raise UserError(f"{p}: format {idx.get('format')!r}, expected {PACK_FORMAT!r}")
     for part in idx["parts"]:
@@ -274,12 +292,10 @@ def unpack(pack_dir, out_dir) -> int:
         sample.save(out / "samples" / f"{sample.object_id}.npz")
         split.setdefault(s, []).append(sample.object_id)
         n += 1
-    tmp = out / ".split.json.tmp"
-    tmp.write_text(json.dumps(split, indent=1))
-    tmp.replace(out / "split.json")
+    write_json(out / "split.json", split, indent=1)
     recipe = _recipe_of(read_index(pack_dir))
     if recipe is not None:
-        (out / "feature_recipe.json").write_text(json.dumps(recipe, indent=1))
+        write_json(out / "feature_recipe.json", recipe, indent=1)
     return n
 
 

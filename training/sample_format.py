@@ -47,6 +47,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..core.atomic_io import is_temporary, save_npz
 from ..core.errors import UserError, read_json
 from ..core.types import FeatureGrid, GridGeometry
 from ..solvers.materials import NUM_CLASSES
@@ -181,9 +182,7 @@ class TrainingSample:
             s = self.spring
             d.update(spring_stiffness_min=s.stiffness_min, spring_stiffness_max=s.stiffness_max,
                      spring_softness_min=np.float32(s.softness_min), spring_softness_max=np.float32(s.softness_max))
-        tmp = path.with_name(path.name + ".tmp.npz")
-        (np.savez_compressed if compress else np.savez)(tmp, **d)
-        tmp.replace(path)
+        save_npz(path, compressed=compress, **d)  # atomic, unique temporary name (hidden: .NAME.XXXX.tmp.npz)
         return path
 
     @classmethod
@@ -240,7 +239,7 @@ def list_samples(data_dir, split: str = "train") -> list[Path]:
     root = Path(data_dir)
     if not root.is_dir():
         raise UserError(f"dataset directory {root} not found")
-    files = sorted(p for p in root.rglob("*.npz") if not p.name.endswith(".tmp.npz"))
+    files = sorted(p for p in root.rglob("*.npz") if not p.name.endswith(".tmp.npz") and not is_temporary(p.name))
     split_path = root / SPLIT_FILE
     if split_path.is_file():
         splits = read_json(split_path)

@@ -11,11 +11,11 @@ consistent labels.  Not physically fitted — for testing that the model learns,
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..core.atomic_io import write_json
 from ..core.types import FeatureGrid, GridGeometry
 from ..solvers import materials
 from ..solvers.skinning import LBS_PARAM_COUNT
@@ -142,6 +142,6 @@ def make_dataset(out_dir, count: int, resolution: int = 12, feature_dim: int = 1
         paths.append(s.save(out / f"{s.object_id}.npz"))
     n_test = int(round(test_fraction * count))
     ids = [p.stem for p in paths]
-    (out / SPLIT_FILE).write_text(json.dumps({"train": ids[: len(ids) - n_test], "val": [],
-                                              "test": ids[len(ids) - n_test:]}, indent=1) + "\n")
+    write_json(out / SPLIT_FILE, {"train": ids[: len(ids) - n_test], "val": [], "test": ids[len(ids) - n_test:]},
+               indent=1)
     return paths

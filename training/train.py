@@ -34,6 +34,7 @@ if __package__ in (None, ""):  # run as a file (torchrun training/train.py): imp
     runpy.run_path(str(Path(__file__).resolve().parents[1] / "standalone.py"))["import_checkout"]()
     __package__ = "unipixie.training"
 
+from ..core.atomic_io import atomic_path, copy_file, write_json  # noqa: E402  (stdlib-only module)
 from ..core.errors import CancelledError, UserError  # noqa: E402  (stdlib-only module)
 
 PRECISIONS = ("auto", "fp32", "bf16")
@@ -294,7 +295,7 @@ def _save(out: Path, objective, optimizer, step: int, s: TrainSettings, fingerpr
     save_training_state(out, optimizer, step, asdict(s), fingerprint, extra=stats)
     recipe = Path(s.data) / "feature_recipe.json"   # how the training objects were rendered (training/pack.py)
     if recipe.is_file():
-        (Path(out) / "feature_recipe.json").write_text(recipe.read_text())
+        copy_file(recipe, Path(out) / "feature_recipe.json")
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -442,7 +443,7 @@ def train(s: TrainSettings, progress=None) -> dict:
              "samples_per_s": rate, "seconds": elapsed, "world_size": world, "device": str(dev),
              "precision": precision, "parameters": sum(p.numel() for p in model.parameters())}
     if s.stats_out and rank == 0:
-        Path(s.stats_out).write_text(json.dumps(stats, indent=1) + "\n")
+        write_json(s.stats_out, stats, indent=1)
     if world > 1:
         dist.barrier()
     return stats
@@ -457,7 +458,8 @@ def _dump_gradients(model, path, rank: int, parts) -> None:
 
     grads = {name: (p.grad.detach().float().cpu().contiguous() if p.grad is not None else torch.zeros_like(p, device="cpu"))
              for name, p in model.named_parameters()}
-    save_file(grads, str(path), metadata={"loss": repr(float(parts["total"].detach()))})
+    with atomic_path(path) as tmp:
+        save_file(grads, str(tmp), metadata={"loss": repr(float(parts["total"].detach()))})
 
 
 # ---------------------------------------------------------------------------- command line

@@ -44,8 +44,17 @@ def git_commit() -> str:
 
 
 def record(name: str, results: Iterable[dict], path: Path | None = None) -> Path:
-    """Merge ``results`` into ``benchmarks/<name>.json`` (see module docstring); returns the path."""
+    """Merge ``results`` into ``benchmarks/<name>.json`` (see module docstring); returns the path.  Two benchmarks
+    recording into the same file at once take turns (a lock; the second waits up to a minute), so neither's
+    results are lost."""
+    from ..atomic_io import OutputLock
+
     path = Path(path) if path else results_dir() / f"{name}.json"
+    with OutputLock(path, "benchmark file", wait=60.0):
+        return _merge(name, results, path)
+
+
+def _merge(name: str, results: Iterable[dict], path: Path) -> Path:
     old = {"benchmark": name, "results": []}
     if path.is_file():
         try:

@@ -32,10 +32,19 @@ def add_arguments(p):
                    help="MPM grid cells across the object (default: the solver's default)")
 
 
+MAX_SUBDIVISIONS = 8
+"""The finest benchmark subject: 655,362 vertices (each subdivision quadruples them; 20 would need terabytes)."""
+
+
 def _subject(subdivisions: int):
     import trimesh
 
     from ..bake import BakeObject
+    from ..errors import UserError
+
+    if not 0 < subdivisions <= MAX_SUBDIVISIONS:
+        raise UserError(f"--subdivisions {subdivisions}: expected 1..{MAX_SUBDIVISIONS} ({MAX_SUBDIVISIONS} is "
+                        f"{10 * 4 ** MAX_SUBDIVISIONS + 2:,} vertices)")
 
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)
     verts = mesh.vertices + [0.0, 0.0, 0.6]
@@ -48,8 +57,8 @@ def run(args) -> list[dict]:
     from ...solvers.scenario import Scenario
     from ...solvers.warp_runtime import device_description, resolve_device
 
+    bo = _subject(args.subdivisions)  # checked first: the solvers' imports take seconds
     solvers = [canonical_solver(s) for s in args.solvers.split(",") if s.strip()]
-    bo = _subject(args.subdivisions)
     n, T = bo.vertex_count, args.frames
     device = resolve_device(args.device)
     sim_device = device_description(device)

@@ -16,13 +16,15 @@ HELP = "time a full diagnosis (baseline + every effect fitted + one addition) of
 
 
 def add_arguments(p):
+    from ..commands import _common
+
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--solver", default="spring_mass", choices=("mpm", "lbs", "spring_mass"),
                    help="solver of the diagnosis (default spring_mass)")
     p.add_argument("--gen-solver", default="mpm", choices=("mpm", "lbs", "spring_mass"),
                    help="solver that makes the measurement (default mpm)")
     p.add_argument("--effect", default="quadratic_drag:k=0.3", help="the hidden effect")
-    p.add_argument("--runs", type=int, default=1, help="timed runs (median reported)")
+    p.add_argument("--runs", type=_common.positive_int, default=1, help="timed runs (median reported)")
     p.add_argument("--setting", action="append", default=[], metavar="KEY=VALUE", help="solver setting of the diagnosis")
     p.add_argument("--parallel", action=argparse.BooleanOptionalAction, default=None,
                    help="candidate fits side by side (default: the diagnosis's own choice for the device)")

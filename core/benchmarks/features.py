@@ -59,9 +59,10 @@ def _device_name(device: str) -> str:
 
 def save_bench_views(path, views, vertices_normalised, faces) -> Path:
     """Views (uint8 images) and the normalised mesh in one compressed file for ``--views-from``."""
+    from ..atomic_io import save_npz
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, format=VIEWS_FORMAT, images=np.round(np.clip(views.images, 0, 1) * 255).astype(np.uint8),
+    save_npz(path, format=VIEWS_FORMAT, images=np.round(np.clip(views.images, 0, 1) * 255).astype(np.uint8),
                         depth=views.depth.astype(np.float32), intrinsics=views.intrinsics,
                         cam_to_world=views.cam_to_world, normalisation=views.normalisation,
                         vertices=np.asarray(vertices_normalised, np.float32), faces=np.asarray(faces, np.int32),
@@ -76,13 +77,20 @@ def load_bench_views(path):
     path = Path(path)
     if not path.is_file():
         raise UserError(f"--views-from {path}: file not found")
-    with np.load(path, allow_pickle=False) as z:
-        if str(z.get("format", "")) != VIEWS_FORMAT:
-            raise UserError(f"{path}: not a views file of 'unipixie bench features --save-views' "
-                            f"(format {VIEWS_FORMAT})")
+    not_views = f"{path}: not a views file of 'unipixie bench features --save-views' (format {VIEWS_FORMAT})"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            z = {k: z[k] for k in z.files}
+    except Exception as exc:  # not a zip, pickled members, a damaged archive: one line
+        raise UserError(f"{not_views}: {exc}") from None
+    if str(z.get("format", "")) != VIEWS_FORMAT:
+        raise UserError(not_views)
+    try:
         views = Views(images=z["images"].astype(np.float32) / 255.0, depth=z["depth"], intrinsics=z["intrinsics"],
                       cam_to_world=z["cam_to_world"], normalisation=z["normalisation"], meta=json.loads(str(z["meta"])))
         return views, z["vertices"].astype(np.float64), z["faces"].astype(np.int64)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise UserError(f"{not_views}: {type(exc).__name__}: {exc}") from None
 
 
 def _median(values):

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic_io import save_figure, save_npz
+
 HELP = "solver fidelity: refinement study on canonical scenes (cantilever, drop, slide, drag) and cross-solver agreement"
 
 TOLERANCE = 0.05
@@ -137,8 +139,8 @@ def run(args) -> list[dict]:
                                     "scene": name, "solver": solver, "resolution": label, "default": default})
                     continue
                 if keep:
-                    np.savez_compressed(keep / f"{name}__{solver}__{label.replace(' ', '_')}.npz",
-                                        times=traj.times, positions=traj.positions)
+                    save_npz(keep / f"{name}__{solver}__{label.replace(' ', '_')}.npz",
+                             times=traj.times, positions=traj.positions)
                 if default:
                     at_default[solver] = traj.positions
                 for metric, value in measured.items():
@@ -204,7 +206,7 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
             ax.legend(fontsize=7)
         fig.tight_layout()
         path = out_dir / f"fidelity_{scene}.png"
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         plt.close(fig)
         paths.append(path)
     return paths

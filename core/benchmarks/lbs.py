@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 
+from ..commands._common import positive_int
 from . import sphere_drop, sphere_mesh, synchronized_times
 
 HELP = "LBS solver throughput (implicit steps/s): 500 cubature points, 100k-vertex mesh output, batches, skinning fit"
@@ -41,7 +42,7 @@ STEP = 5.0e-3
 def add_arguments(p):
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--cubature", type=int, default=500, help="cubature points (default 500)")
-    p.add_argument("--steps", type=int, default=None, help="steps per timed run (default: 200 on a GPU, 30 on the CPU)")
+    p.add_argument("--steps", type=positive_int, default=None, help="steps per timed run (default: 200 on a GPU, 30 on the CPU)")
     p.add_argument("--runs", type=int, default=3, help="timed runs per case (median; default 3)")
     p.add_argument("--skip-mesh", action="store_true", help="skip the 100k-vertex case")
     p.add_argument("--line-search-candidates", type=int, default=0,

@@ -35,6 +35,7 @@ import statistics
 
 import numpy as np
 
+from ..commands._common import positive_int
 from . import synchronized_times
 
 HELP = "MPM solver throughput (particle-substeps/s) at several particle counts, with a reference APIC solver"
@@ -66,7 +67,7 @@ def add_arguments(p):
     p.add_argument("--sizes", default="50000,200000,1000000",
                    help="comma-separated particle counts (rounded to cubes; default: 50000,200000,1000000)")
     p.add_argument("--runs", type=int, default=3, help="timed runs per size and solver (median; default 3)")
-    p.add_argument("--substeps", type=int, default=None,
+    p.add_argument("--substeps", type=positive_int, default=None,
                    help="substeps per timed run (default: 100 on a GPU, 10 on the CPU)")
     p.add_argument("--variants", default="default",
                    help="comma-separated solver-setting presets to compare in the same run: "

@@ -24,6 +24,7 @@ import statistics
 
 import numpy as np
 
+from ..commands._common import positive_number
 from . import sphere_drop, sphere_mesh, synchronized_times
 
 HELP = "spring-mass solver throughput (substeps/s): 2048 anchors, a 100k-vertex mesh bound, diagnosis-size runs"
@@ -33,7 +34,7 @@ def add_arguments(p):
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--anchors", type=int, default=2048, help="anchors of the large cases (default 2048)")
     p.add_argument("--runs", type=int, default=3, help="timed runs per case (median; default 3)")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--duration", type=positive_number, default=None,
                    help="simulated seconds per timed run of the large cases (default: 0.5 on a GPU, 0.05 on the CPU)")
     p.add_argument("--skip-mesh", action="store_true", help="skip the 100k-vertex case")
 

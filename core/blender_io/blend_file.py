@@ -16,7 +16,7 @@ from typing import Iterable, Optional
 
 import bpy
 
-from ..atomic_io import atomic_path, output_path
+from ..atomic_io import atomic_path, check_blend, output_path
 from ..errors import UserError
 
 
@@ -33,11 +33,15 @@ def _reopen_check(tmp: Path, shown: str, expect_objects: Iterable[str]) -> None:
         raise UserError(f"cannot write {shown}: the file written lacks the object(s) {', '.join(missing)}")
 
 
-def save_blend(path, expect_objects: Optional[Iterable[str]] = None, quiet: bool = True) -> Path:
+def save_blend(path, expect_objects: Optional[Iterable[str]] = None, quiet: bool = True,
+               as_session_file: bool = False) -> Path:
     """Save the open session as ``path`` atomically and verified (see the module docstring).
 
     expect_objects: object names that must be in the saved file (default: every object of the
-    session).  quiet: silence Blender's "Info: Saved ..." line.  Returns ``path``.
+    session).  quiet: silence Blender's "Info: Saved ..." line.  as_session_file: afterwards make
+    ``path`` the session's own file (``bpy.data.filepath``; bakes put their PC2 caches beside it) by
+    saving it once more the ordinary way, which Blender writes to ``PATH@`` and renames, so the
+    verified copy stays if that fails.  Returns ``path``.
     """
     shown = os.fspath(path)
     expect = [o.name for o in bpy.data.objects] if expect_objects is None else list(expect_objects)
@@ -66,4 +70,18 @@ def save_blend(path, expect_objects: Optional[Iterable[str]] = None, quiet: bool
                 backup.unlink()
             if not tmp.exists():  # Blender failed before creating it: let the check below say so
                 tmp.touch()
+    if as_session_file:
+        real = output_path(path)
+        try:
+            if quiet:
+                from .scene_import import quiet_blender_output
+
+                with quiet_blender_output():
+                    bpy.ops.wm.save_as_mainfile(filepath=str(real), relative_remap=True)
+            else:
+                bpy.ops.wm.save_as_mainfile(filepath=str(real), relative_remap=True)
+        except RuntimeError as exc:
+            text = str(exc).strip().removeprefix("Error:").strip() or "Blender could not save the file"
+            raise UserError(f"cannot write {shown}: {text} (the copy saved just before is complete)") from None
+        check_blend(real, shown)
     return Path(path)

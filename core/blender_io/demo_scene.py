@@ -20,6 +20,7 @@ from typing import Sequence
 import bpy
 import numpy as np
 
+from ..atomic_io import atomic_path
 from ..errors import UserError
 from .context_safety import active_and_selected
 from .scene_import import quiet_blender_output
@@ -194,9 +195,10 @@ def render_frames(frames: Sequence[int], folder, size=(640, 360), hide=()) -> li
         for f in frames:
             scene.frame_set(int(f))
             path = folder / f"frame_{int(f):04d}.png"
-            r.filepath = str(path)
-            with quiet_blender_output():
-                bpy.ops.render.render(write_still=True)
+            with atomic_path(path) as tmp:  # the picture is checked whole before it takes its name
+                r.filepath = str(tmp)
+                with quiet_blender_output():
+                    bpy.ops.render.render(write_still=True)
             out.append(path)
     finally:
         (r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage, r.filepath,
@@ -208,9 +210,11 @@ def render_frames(frames: Sequence[int], folder, size=(640, 360), hide=()) -> li
 
 
 def save(path) -> None:
-    """Save the session as ``path`` (relative paths remapped), quietly."""
-    with quiet_blender_output():
-        bpy.ops.wm.save_as_mainfile(filepath=str(path), relative_remap=True)
+    """Save the session as ``path`` (relative paths remapped), quietly, atomically and verified; ``path``
+    becomes the session's file (the bakes put their PC2 caches beside it)."""
+    from .blend_file import save_blend
+
+    save_blend(path, quiet=True, as_session_file=True)
 
 
 def mesh_volume(obj) -> float:

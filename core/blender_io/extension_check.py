@@ -19,6 +19,26 @@ import sys
 import traceback
 
 
+def _write_report(path, report):
+    """The report, written into a unique temporary file beside ``path`` and renamed over it (this standalone
+    script cannot import the package's ``core/atomic_io.py``; the parent reads the file only once it is whole)."""
+    import os
+    import tempfile
+
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".extension-check.", suffix=".tmp.json", dir=folder)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(report, f, indent=1)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 def main(argv):
     ap = argparse.ArgumentParser()
     ap.add_argument("--zip", required=True)
@@ -48,8 +68,7 @@ def main(argv):
         report["ok"] = bool(report["enabled"] and report["panels"] and "FINISHED" in result)
     except Exception:  # the report carries the failure to the parent process
         report["error"] = traceback.format_exc()
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=1)
+    _write_report(args.out, report)
     return 0 if report["ok"] else 1
 
 

@@ -128,6 +128,8 @@ def loaded_objects(path, object_name: str | None = None):
         if suffix == ".blend":
             objects = _append_from_blend(path, object_name, scene)
         else:
+            if suffix == ".obj":
+                check_obj_file(path)
             before = set(bpy.data.objects)
             try:
                 # into the current scene (no context override: see .context_safety), then moved to the temporary one
@@ -148,6 +150,45 @@ def loaded_objects(path, object_name: str | None = None):
             if not objects:
                 raise UserError(f"{path}: the file holds no objects")
         yield geometry_objects(objects)
+
+
+def check_obj_file(path: Path) -> None:
+    """Refuse an OBJ file that Blender's importer would quietly change: a vertex coordinate that is not a finite
+    number (Blender reads ``nan`` and ``inf`` as 0) or a face that names a vertex the file does not have (Blender
+    drops the face with a warning).  One pass over the text; raises :class:`UserError` naming the line."""
+    import math
+
+    vertices, faces, worst = 0, [], (0, 0)
+    try:
+        with open(path, "rb") as f:
+            for n, raw in enumerate(f, 1):
+                line = raw.split(b"#", 1)[0].strip()
+                if line.startswith(b"v "):
+                    vertices += 1
+                    try:
+                        xyz = [float(x) for x in line.split()[1:4]]
+                    except ValueError:
+                        raise UserError(f"{path}: line {n}: a vertex with a coordinate that is not a number "
+                                        f"({raw.strip()[:60].decode(errors='replace')!r})") from None
+                    if len(xyz) < 3 or not all(math.isfinite(x) for x in xyz):
+                        raise UserError(f"{path}: line {n}: a vertex needs three finite coordinates, got "
+                                        f"{raw.strip()[:60].decode(errors='replace')!r}")
+                elif line.startswith(b"f "):
+                    for ref in line.split()[1:]:
+                        try:
+                            index = int(ref.split(b"/", 1)[0])
+                        except ValueError:
+                            raise UserError(f"{path}: line {n}: a face with a vertex reference that is not a whole "
+                                            f"number ({ref[:20].decode(errors='replace')!r})") from None
+                        if index == 0 or (index < 0 and -index > vertices):
+                            raise UserError(f"{path}: line {n}: face vertex {index} does not exist (OBJ counts "
+                                            "vertices from 1)")
+                        if index > worst[0]:
+                            worst = (index, n)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    if worst[0] > vertices:
+        raise UserError(f"{path}: line {worst[1]}: a face names vertex {worst[0]}, the file has {vertices} vertices")
 
 
 def _move_to_scene(objects, scene) -> None:

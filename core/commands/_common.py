@@ -33,6 +33,43 @@ def positive_int(text: str) -> int:
     return x
 
 
+def positive_number(text: str) -> float:
+    """A finite number greater than 0."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (x > 0 and x != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return x
+
+
+def non_negative_int(text: str) -> int:
+    """A whole number 0 or more."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {text!r}") from None
+    if x < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {x}")
+    return x
+
+
+SEED_LIMIT = 2 ** 32
+"""Seeds are whole numbers in [0, 2³²) (what numpy's and torch's generators take everywhere)."""
+
+
+def seed(text: str) -> int:
+    """A random seed: a whole number in [0, 2³²)."""
+    try:
+        x = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {text!r}") from None
+    if not 0 <= x < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected a whole number in [0, 2^32), got {x}")
+    return x
+
+
 def shard(text: str) -> tuple[int, int]:
     """``i/n`` with 0 <= i < n (0-based shard index)."""
     try:

@@ -81,7 +81,7 @@ def add_arguments(p):
                    help="the object's feature grid ('unipixie features'): the model predicts the material at --alpha "
                         "from it (without it, the object's own features are used or computed)")
     m.add_argument("--checkpoint", metavar="DIR", help="the model for --alpha (default: the shipped model)")
-    m.add_argument("--seed", type=int, default=0, help="the model's noise seed (default 0)")
+    m.add_argument("--seed", type=_common.seed, default=0, help="the model's noise seed (default 0)")
     m.add_argument("--solver-heads", action="store_true",
                    help="LBS and spring-mass take their own heads' material (LBS E/ν, spring stiffnesses) instead of "
                         "the continuum field all solvers share by default (one material, one motion)")

@@ -18,8 +18,21 @@ def run(args) -> int:
     import platform
     import tempfile
 
+    import os
+    import shutil
+
     from .. import deps, extension, paths
     from .. import __version__
+    from ..errors import UserError
+
+    if args.blender:  # the binary is checked before anything runs, and only the extension check uses it
+        if args.skip_extension:
+            raise UserError("--blender checks the extension with that Blender binary; it cannot be combined with "
+                            "--skip-extension")
+        found = shutil.which(os.path.expanduser(args.blender))
+        if found is None:
+            what = "is not executable" if os.path.exists(os.path.expanduser(args.blender)) else "does not exist"
+            raise UserError(f"--blender {args.blender}: the file {what}; give the path of a Blender executable (>= 4.2)")
 
     print(f"unipixie {__version__}  (Python {platform.python_version()}, {platform.system()} {platform.machine()})")
     report = deps.check()

@@ -46,14 +46,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    import sys
     from pathlib import Path
 
     from ..errors import UserError
-    from ..features import FeatureOptions, features_file_job, save_feature_slices, save_view_sheet
-    from ..jobs import run_job
-    from ..progress import Progress
-    from ..types import Views
+    from ..features import FeatureOptions
 
     out = Path(args.out).expanduser()
     if out.suffix != ".npz":
@@ -83,6 +79,23 @@ def run(args) -> int:
         raise UserError("rendering needs Blender's Python module 'bpy' (pip install bpy==5.0.1 with Python 3.11), "
                         "or run inside Blender: blender -b --python-expr \"from unipixie.core.cli import main; "
                         "main()\" -- features ...") from None
+    from ..atomic_io import locked
+
+    with locked([p for p, _ in outputs], what="output"):  # a second run writing the same files is refused
+        return _render_and_write(args, out, options)
+
+
+def _render_and_write(args, out, options) -> int:
+    from pathlib import Path
+
+    import sys
+
+    from ..errors import UserError
+    from ..features import features_file_job, save_feature_slices, save_view_sheet
+    from ..jobs import run_job
+    from ..progress import Progress
+    from ..types import Views
+
     with Progress(total=100, description="features") as progress:
         result = run_job(features_file_job(args.object, args.object_name, options), progress)
     grid = result.grid

@@ -149,6 +149,7 @@ def _synth(args) -> int:
                     int(args.duration * args.fps) + 1).check(allow_long=args.allow_long)
     out = _check_output(args.out, args.force)
     effects = [e for e in args.effect if e.strip().lower() != "none"]
+    _synth_cost(args).check(args.allow_long, remedy="use a shorter --duration, a lower --fps or a coarser --setting")
     with Progress(total=1.0, description="synth") as progress:
         m = synth.synthesize(effects, args.solver, shape=args.shape, scenario=args.scenario, noise=args.noise,
                              occlusion=args.occlusion, duration=args.duration, fps=args.fps, points=args.points,
@@ -161,6 +162,28 @@ def _synth(args) -> int:
     print(f"hidden: {', '.join(effects) or 'no effect'} (simulated with {args.solver}, E × {args.true_E_scale:g}); "
           f"noise σ = {args.noise:g} m, {100 * args.occlusion:.0f} % occluded")
     return 0
+
+
+def _synth_cost(args):
+    """The up-front cost of ``measure synth`` (frames x substeps, core/cost.py), printed before it runs."""
+    import numpy as np
+
+    from ..cost import estimate, frames_estimate
+    from ..diagnosis.synth import make_shape
+    from .diagnose import parse_settings
+
+    mesh = make_shape(args.shape, args.points)
+    frames = int(args.duration * args.fps) + 1
+    stated = (args.E * args.true_E_scale, args.nu, args.density)
+    if not all(np.isfinite(stated)) or stated[0] <= 0 or not -1 < stated[1] < 0.5 or stated[2] <= 0:
+        return frames_estimate(f"synthesising {args.duration:g} s at {args.fps:g} fps", frames)  # the material's
+        # own check (in the synthesis) names the impossible value
+    material = type("StatedMaterial", (), {"E": args.E * args.true_E_scale, "nu": args.nu, "density": args.density})
+    est = estimate(f"synthesising {args.duration:g} s at {args.fps:g} fps with {args.solver}", args.solver,
+                   size=float(np.max(mesh.extents)), times=np.arange(frames) / args.fps, material_spec=material,
+                   points=len(mesh.vertices), settings=parse_settings(args.setting) or None)
+    print(f"estimated cost: {est.describe()}", flush=True)
+    return est
 
 
 def _vector(text):

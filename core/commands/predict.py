@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ._common import device, existing_file, positive_int, unit_interval
+from ._common import seed as seed_type
 
 NAME = "predict"
 HELP = "predict materials (MPM field, LBS parameters, spring-mass stiffness) for a feature grid at one or more alpha values"
@@ -27,7 +28,7 @@ def add_arguments(p):
     p.add_argument("--alphas", type=_alphas, default=None, metavar="A,B,...", help="several alphas, predicted in one pass")
     p.add_argument("--sweep", type=positive_int, default=None, metavar="K", help="predict K evenly spaced alphas and write the cached sweep")
     p.add_argument("--heads", default="mpm,lbs,spring_mass", help="comma-separated: mpm, lbs, spring_mass (default all)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (same seed, same result)")
+    p.add_argument("--seed", type=seed_type, default=0, help="noise seed (same seed, same result)")
     p.add_argument("--steps", type=positive_int, default=None, help="Heun steps, 1 or more (default 15)")
     p.add_argument("--device", type=device, default="auto")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -36,13 +37,9 @@ def add_arguments(p):
 def run(args) -> int:
     from pathlib import Path
 
-    import numpy as np
-
-    from ..atomic_io import check_writable, save_npz, write_error, write_json
+    from ..atomic_io import OutputLock, check_writable, refuse_overwriting_inputs, write_error
     from ..errors import UserError
     from ..model.inference import DEFAULT_STEPS, Predictor, canonical_heads
-    from ..model.sweep import predict_sweep
-    from ..progress import Progress
     from ..types import FeatureGrid
 
     chosen = [x is not None for x in (args.alpha, args.alphas, args.sweep)]
@@ -54,12 +51,28 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {args.out} is an existing file; --out names a folder for the prediction files")
     check_writable(out, directory=True, what="output folder")
+    alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]
+    names = ["alpha_sweep.npz"] if args.sweep is not None else ["prediction.json"] + [
+        f"{kind}_a{a:.3f}.npz" for a in alphas for kind in ("material_field", "lbs", "spring")]
+    for name in names:  # an existing output that is (a link to) the grid would overwrite it
+        refuse_overwriting_inputs(out / name, [args.grid], what="output file")
     grid = FeatureGrid.load(args.grid)
     predictor = Predictor.load(args.checkpoint, device=args.device)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise write_error(out, exc, "create the output folder") from None
+    with OutputLock(out / "prediction.json", "output folder"):  # a second run into the same folder is refused
+        return _predict(args, out, grid, predictor, heads, steps)
+
+
+def _predict(args, out, grid, predictor, heads, steps) -> int:
+    import numpy as np
+
+    from ..atomic_io import save_npz, write_json
+    from ..model.sweep import predict_sweep
+    from ..progress import Progress
+
     with Progress(total=1.0, description="predict") as progress:
         if args.sweep is not None:
             sweep = predict_sweep(predictor, grid, count=args.sweep, seed=args.seed, heads=heads, steps=steps,
@@ -67,7 +80,7 @@ def run(args) -> int:
             path = sweep.save(out / "alpha_sweep.npz")
             print(f"wrote the {len(sweep.alphas)}-value alpha sweep to {path}")
             return 0
-        alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]
+        alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]  # as checked
         pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress)
     summary = {"checkpoint": predictor.checkpoint, "grid": str(args.grid), "seed": args.seed, "steps": steps,
                "seconds": pred.seconds, "device": str(predictor.device), "alphas": []}

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import Optional
 
@@ -44,10 +43,6 @@ TRAINING_TENSORS = "training_state.safetensors"
 TRAINING_JSON = "training_state.json"
 WEIGHTS_FORMAT = "unipixie.model_weights/1"
 TRAINING_FORMAT = "unipixie.training_state/1"
-
-
-def _replace(tmp: Path, final: Path) -> None:
-    os.replace(tmp, final)
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -204,9 +199,10 @@ def save_training_state(directory, optimizer: torch.optim.Optimizer, step: int, 
                 tensors[f"state.{idx}.{name}"] = val.detach().contiguous().cpu()
             else:
                 scalars[f"{idx}.{name}"] = val
-    tmp = d / (TRAINING_TENSORS + ".tmp")
-    save_file(tensors, str(tmp), metadata={"format": TRAINING_FORMAT})
-    _replace(tmp, d / TRAINING_TENSORS)
+    from ..atomic_io import atomic_path
+
+    with atomic_path(d / TRAINING_TENSORS) as tmp:
+        save_file(tensors, str(tmp), metadata={"format": TRAINING_FORMAT})
     groups = [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()} for g in sd["param_groups"]]
     _write_json(d / TRAINING_JSON, {"format": TRAINING_FORMAT, "step": int(step), "settings": settings,
                                     "data_fingerprint": data_fingerprint, "param_groups": groups,

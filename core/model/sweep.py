@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import UserError
 from ..paths import cache_dir, content_key
 from ..progress import Progress
-from ..types import FeatureGrid, GridGeometry, MaterialField
+from ..types import FeatureGrid, GridGeometry, MaterialField, unpack_occupancy
 from .inference import DEFAULT_STEPS, DEFAULT_SWEEP_COUNT, LBSPrediction, Prediction, Predictor, SpringPrediction
 
 SWEEP_FORMAT = "unipixie.alpha_sweep/1"
@@ -149,8 +149,7 @@ class AlphaSweep:
 
         arrays = {k: getattr(self, k) for k in self._ARRAYS if getattr(self, k) is not None}
         save_npz(path, format=SWEEP_FORMAT, alphas=self.alphas, occupancy=np.packbits(self.occupancy.ravel()),
-                            geometry=json.dumps(self.geometry.to_dict()), meta=json.dumps(self.meta, default=str),
-                            **arrays)
+                 geometry=json.dumps(self.geometry.to_dict()), meta=json.dumps(self.meta, default=str), **arrays)
         return path
 
     @classmethod
@@ -164,8 +163,7 @@ class AlphaSweep:
         if str(d.get("format", "")) != SWEEP_FORMAT:
             raise UserError(f"{path}: 'format' is {str(d.get('format', ''))!r}, expected {SWEEP_FORMAT!r}")
         geo = GridGeometry(**json.loads(str(d["geometry"])))
-        R = geo.resolution
-        occ = np.unpackbits(d["occupancy"])[: R ** 3].astype(bool).reshape(R, R, R)
+        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
         arrays = {k: d[k] for k in cls._ARRAYS if k in d}
         return cls(d["alphas"], geo, occ, meta=json.loads(str(d["meta"])), **arrays)
 
@@ -200,7 +198,5 @@ def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_
     sweep = AlphaSweep.from_prediction(pred, grid)
     sweep.meta.update({"checkpoint": predictor.checkpoint, "seconds": pred.seconds})
     if path is not None:
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        sweep.save(tmp)
-        tmp.replace(path)
+        sweep.save(path)  # atomic, with a unique temporary name (two processes may fill the cache at once)
     return sweep

@@ -456,6 +456,10 @@ def run_case(case: Case, root: Path, fx: Path, base_env: dict, fs_ok: bool) -> d
     # where the outputs are: mnt/ was a tmpfs; its contents after the command are in mnt_after/
     after_root = d
     view = (lambda rel: d / ("mnt_after/" + rel[4:] if rel.startswith("mnt/") else rel)) if case.fs else (lambda rel: d / rel)
+
+    def unview(q: Path) -> str:  # the case's name of a file seen after the command (mnt_after/X is mnt/X)
+        rel = str(q.relative_to(d))
+        return "mnt/" + rel[len("mnt_after/"):] if case.fs and rel.startswith("mnt_after/") else rel
     after = digest(d)
     if case.fs:
         seed = {k[len("mnt_seed/"):]: v for k, v in before.items() if k.startswith("mnt_seed/")}
@@ -488,8 +492,7 @@ def run_case(case: Case, root: Path, fx: Path, base_env: dict, fs_ok: bool) -> d
                 partial.append(why)
         else:  # refused or cancelled: nothing new under the final name
             if p.is_dir():
-                new = [q for q in p.rglob("*") if q.is_file() and str(q.relative_to(d)) not in before
-                       and not is_leftover(q.name)]
+                new = [q for q in p.rglob("*") if q.is_file() and unview(q) not in before and not is_leftover(q.name)]
                 if new:
                     partial.append(f"{rel}: {len(new)} new file(s) after a refusal ({new[0].name})")
             elif p.is_file():

@@ -25,7 +25,7 @@ def add_arguments(p):
     b.add_argument("--count", type=_common.positive_int, required=True, metavar="N", help="objects in the whole dataset")
     b.add_argument("--shard", type=_common.shard, default=(0, 1), metavar="i/n",
                    help="build only objects with index ≡ i (mod n) (default 0/1 = all)")
-    b.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
+    b.add_argument("--seed", type=_common.seed, default=0, help="base seed (default 0)")
     b.add_argument("--classes", metavar="A,B,...", help="semantic classes to cycle through (default: all ten)")
     b.add_argument("--resolution", type=_common.positive_int, default=64, metavar="R", help="grid voxels per side (default 64)")
     b.add_argument("--views", type=_common.positive_int, default=8, metavar="N", help="rendered views per object (default 8)")
@@ -41,11 +41,11 @@ def add_arguments(p):
                      help="the seeded untrained offline ViT (offline-random-vit-w32, NOT CLIP; the default)")
     b.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST", help="split fractions (default 0.8,0.1,0.1)")
     b.add_argument("--frames", type=_common.positive_int, default=30, help="frames of the ground-truth clip (default 30)")
-    b.add_argument("--fps", type=float, default=60.0, help="frame rate of the clip (default 60)")
+    b.add_argument("--fps", type=_common.positive_number, default=60.0, help="frame rate of the clip (default 60)")
     b.add_argument("--cells-across", type=_common.positive_int, default=12, help="MPM cells across the object (default 12)")
-    b.add_argument("--wave-speed-per-size", type=float, default=400.0, metavar="PER_S",
+    b.add_argument("--wave-speed-per-size", type=_common.positive_number, default=400.0, metavar="PER_S",
                    help="cap on the simulated elastic wave speed, in object sizes per second (default 400)")
-    b.add_argument("--tracked-points", type=int, default=1024, help="tracked mesh vertices (default 1024; 0 = all)")
+    b.add_argument("--tracked-points", type=_common.non_negative_int, default=1024, help="tracked mesh vertices (default 1024; 0 = all)")
     b.add_argument("--spring-anchors", type=_common.positive_int, default=256,
                    help="spring-mass anchors N_a (default 256; train the model with --set spring_anchors=N_a)")
     b.add_argument("--lbs-cubature", type=_common.positive_int, default=200, help="LBS cubature points (default 200)")
@@ -96,7 +96,10 @@ def run(args) -> int:
             split = tuple(float(x) for x in args.split.split(","))
         except ValueError:
             raise UserError(f"--split {args.split!r}: expected three numbers TRAIN,VAL,TEST") from None
-        classes = tuple(c.strip() for c in args.classes.split(",")) if args.classes else None
+        classes = tuple(c.strip() for c in args.classes.split(",")) if args.classes is not None else None
+        if classes is not None and not all(classes):
+            raise UserError(f"--classes {args.classes!r}: an empty class name; give names separated by commas (or "
+                            "leave --classes out for all ten)")
         kw = {"classes": classes} if classes else {}
         settings = dataset.BuildSettings(seed=args.seed, resolution=args.resolution, views=args.views,
                                          render_resolution=args.render_resolution, engine=args.engine,

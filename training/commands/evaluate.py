@@ -25,7 +25,7 @@ def add_arguments(p):
     p.add_argument("--device", type=_common.device, default="auto", help="torch device of the models (default auto)")
     p.add_argument("--solver-device", type=_common.device, default="cpu",
                    help="Warp device of the Table 2 simulations (default cpu)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed of the generative models (default 0)")
+    p.add_argument("--seed", type=_common.seed, default=0, help="noise seed of the generative models (default 0)")
     p.add_argument("--max-objects", type=int, default=0, help="evaluate only the first N objects (default all)")
     p.add_argument("--simulate-objects", type=int, default=10,
                    help="objects of the solver-fidelity table (default 10, as the paper; 0 = no simulations)")

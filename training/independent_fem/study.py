@@ -27,6 +27,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import FEMModel, FEMSettings, box_tet_mesh
+from ...core.atomic_io import write_json
 from ...core.errors import UserError
 
 DROP_DURATION = 0.36
@@ -259,9 +260,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     result = reference_study(drop, bars)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(out)
+    write_json(out, result, indent=1)
     print(json.dumps({"scenes": result["scenes"], "convergence": result["convergence"]}, indent=1))
 
 
