@@ -67,7 +67,7 @@ network is stiffer there (a 0.04 × 0.02 m bar 3 anchors thick stretched 10 % to
 replaced by the one that fits the anchor's affine stiffness tensor (∝ k_i Σ w L d⊗d⊗d⊗d) to the isotropic
 one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:meth:`AnchorNetwork.fabric_sums`; equal to
 Σ w L for evenly spread springs; the bar then stretches within 1 %).  The calibration ``c_E``
-(:data:`STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
+(:data:`.spring_mass_settings.STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
 ``docs/spring_mass.md``.  The network's Poisson ratio is 1/4 whatever ν says (ν is not
@@ -108,17 +108,8 @@ from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_materia
 from .sampling import farthest_point_sampling, fill_mesh, thickness_at, voxel_downsample
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA
+from .spring_mass_settings import DEFAULT_ANCHORS, DEFAULT_SOFTNESS, SpringMassSettings  # noqa: F401 - DEFAULT_SOFTNESS: public
 
-DEFAULT_ANCHORS = 2048
-"""N_a: anchors of the network (the paper's spring head predicts N_a stiffnesses + 1 softness)."""
-DEFAULT_NEIGHBOURS = 32
-"""Springs from every anchor to its 32 nearest anchors (merged into undirected springs)."""
-DEFAULT_FIXED_SPRINGS = 16
-"""Springs of rank < 16 are never weakened by the softness."""
-DEFAULT_SOFTNESS = 0.0
-"""η used when the stiffness comes from a material field (Spring-Gaus's initial value)."""
-DEFAULT_BINDING = 6
-"""Anchors each tracked point / vertex is bound to."""
 SPRING_PARAM_COUNT = DEFAULT_ANCHORS + 1
 """Length of the model's spring-mass vector (k ∈ R^{N_a}, η): 2049."""
 NETWORK_POISSON_RATIO = 0.25
@@ -129,8 +120,6 @@ AFFINE_STIFFNESS_FACTOR = 12.0
 """k_i = c_E · 12 E_i V_i / Σ w_s L_s (affine network, see module docstring)."""
 AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
-STIFFNESS_CALIBRATION = 0.94
-"""c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
 ANCHORS_ACROSS_THIN = 3.0
 """Anchors wanted through the thickness of thin parts (adaptive anchor sampling, :func:`select_anchors`)."""
 MAX_ANCHOR_REFINEMENT = 4.0
@@ -140,91 +129,6 @@ GPU_LANES_PER_ANCHOR = 32
 
 
 # ------------------------------------------------------------------------------------- settings
-@dataclass
-class SpringMassSettings:
-    """Set-up options of the spring-mass solver.
-
-    anchors: N_a, number of anchors (fewer when the solid has fewer fill points).
-    neighbours: springs per anchor before merging (k of the k-NN graph).
-    fixed_springs: ranks below this keep full strength whatever the softness (at most ``neighbours``).
-    softness: η, the global softness (dimensionless real).
-    stiffness: ``None`` (derive k from the material's E) or (N_a,) newtons — explicit per-anchor
-        stiffness, what the model's spring head predicts.
-    binding: anchors per tracked point.
-    fill_per_anchor: fill points per anchor used for masses and cell volumes.
-    max_fill_points: cap on the number of fill points.
-    safety: fraction of the stability limit used as the substep (0 < safety <= 1).
-    substeps: ``None`` (from stability) or a fixed number of substeps per frame interval.
-    max_substeps_per_frame: refuse (UserError) a run whose stability limit needs more substeps
-        per frame interval than this (e.g. a huge ``material_damping`` η: dashpots are explicit).
-    stiffness_calibration: c_E (see module docstring).
-    lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
-        1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`GPU_LANES_PER_ANCHOR` on a GPU,
-        1 on the CPU.
-    """
-
-    anchors: int = DEFAULT_ANCHORS
-    neighbours: int = DEFAULT_NEIGHBOURS
-    fixed_springs: int = DEFAULT_FIXED_SPRINGS
-    softness: float = DEFAULT_SOFTNESS
-    stiffness: Optional[np.ndarray] = None
-    binding: int = DEFAULT_BINDING
-    fill_per_anchor: int = 12
-    max_fill_points: int = 400_000
-    safety: float = 0.7
-    substeps: Optional[int] = None
-    max_substeps_per_frame: int = 200_000
-    stiffness_calibration: float = STIFFNESS_CALIBRATION
-    lanes_per_anchor: Optional[int] = None
-
-    def __post_init__(self):
-        if self.lanes_per_anchor is not None:
-            lanes = self.lanes_per_anchor
-            if not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
-                raise UserError(f"spring-mass setting 'lanes_per_anchor' must be None or a whole number in 1..1024, "
-                                f"got {lanes!r}")
-            self.lanes_per_anchor = int(lanes)
-        for name in ("anchors", "neighbours", "binding", "fill_per_anchor", "max_fill_points", "max_substeps_per_frame"):
-            val = getattr(self, name)
-            if not isinstance(val, (int, np.integer)) or val < 1:
-                raise UserError(f"spring-mass setting '{name}' must be a positive whole number, got {val!r}")
-            setattr(self, name, int(val))
-        if not isinstance(self.fixed_springs, (int, np.integer)) or self.fixed_springs < 0:
-            raise UserError(f"spring-mass setting 'fixed_springs' must be a whole number >= 0, got {self.fixed_springs!r}")
-        self.fixed_springs = min(int(self.fixed_springs), self.neighbours)
-        try:
-            self.softness = float(self.softness)
-        except (TypeError, ValueError):
-            raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}") from None
-        if math.isnan(self.softness) or self.softness == math.inf:
-            raise UserError(f"spring-mass setting 'softness' must be a real number (or -inf), got {self.softness}")
-        if not (0.0 < float(self.safety) <= 1.0):
-            raise UserError(f"spring-mass setting 'safety' must lie in (0, 1], got {self.safety!r}")
-        if self.substeps is not None and (int(self.substeps) != self.substeps or self.substeps < 1):
-            raise UserError(f"spring-mass setting 'substeps' must be None or a positive whole number, got {self.substeps!r}")
-        if not (np.isfinite(self.stiffness_calibration) and self.stiffness_calibration > 0):
-            raise UserError("spring-mass setting 'stiffness_calibration' must be positive")
-        if self.stiffness is not None:
-            k = np.asarray(self.stiffness, dtype=np.float64).reshape(-1)
-            if k.size == 0 or not np.all(np.isfinite(k)) or np.any(k <= 0):
-                raise UserError("explicit spring stiffness vector must be finite and positive (newtons, one per anchor)")
-            self.stiffness = k
-
-    @classmethod
-    def coerce(cls, settings) -> "SpringMassSettings":
-        if settings is None:
-            return cls()
-        if isinstance(settings, cls):
-            return settings
-        if isinstance(settings, dict):
-            known = {f.name for f in fields(cls)}
-            unknown = set(settings) - known
-            if unknown:
-                raise UserError(f"unknown spring-mass setting(s) {sorted(unknown)}; known: {sorted(known)}")
-            return cls(**settings)
-        raise UserError(f"spring-mass settings must be a SpringMassSettings or a dict, got {type(settings).__name__}")
-
-
 # ------------------------------------------------------------------------------------- network
 def softness_weights(ranks: np.ndarray, neighbours: int, fixed_springs: int, softness: float) -> np.ndarray:
     """Strength factor w ∈ [0, 1] of springs of the given neighbour ranks (0 = nearest).
@@ -419,7 +323,7 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     """Anchors, masses, cell volumes and springs of ``body`` (see the module docstring)."""
     from scipy.spatial import cKDTree
 
-    settings = SpringMassSettings.coerce(settings)
+    settings = SpringMassSettings.from_any(settings)
     warnings: list[str] = []
     fill, fvol = fill_solid(body, settings.anchors * settings.fill_per_anchor, settings.max_fill_points)
     mat = sample_material(material, fill)
@@ -862,7 +766,7 @@ def prepare(body: Body, material: MaterialSpec, scenario: Scenario, frame_times,
         raise UserError(f"expected a Body, got {type(body).__name__}")
     if not isinstance(scenario, Scenario):
         raise UserError(f"expected a Scenario, got {type(scenario).__name__}")
-    settings = SpringMassSettings.coerce(settings)
+    settings = SpringMassSettings.from_any(settings)
     return SpringMassSimulation(body, material, scenario, frame_times, device, settings, progress)
 
 
@@ -873,7 +777,7 @@ def prepare_with_parameters(body: Body, stiffness: np.ndarray, softness: float, 
 
     ``material`` gives the density (masses) and class; its E is not used.
     """
-    settings = SpringMassSettings.coerce(settings)
+    settings = SpringMassSettings.from_any(settings)
     k = np.asarray(stiffness, dtype=np.float64).reshape(-1)
     fields_ = {f.name: getattr(settings, f.name) for f in fields(SpringMassSettings)}
     fields_.update(stiffness=k, softness=softness, anchors=len(k))
