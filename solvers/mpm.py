@@ -35,9 +35,9 @@ from . import materials
 from .api import Simulation
 from .body import Body
 from .effects import PhysicsTerms
-from .material_sampling import MaterialSpec, SampledMaterial, sample_material
-from .sampling import fill_mesh
-from .mpm_settings import AUTO_MAX_PARTICLES, MPMSettings
+from .material_sampling import MaterialSpec
+from .mpm_particles import initial_particles
+from .mpm_settings import MPMSettings
 from .scenario import Scenario
 
 SOLVER_NAME = "mpm"
@@ -86,29 +86,6 @@ def _class_law_table(wp, kernels, device):
     return wp.array(laws, dtype=kernels.ClassLaw, device=device)
 
 
-def _per_class(attribute) -> np.ndarray:
-    """(NUM_CLASSES,) array of ``attribute(material_class)`` indexed by class id (index it with class ids)."""
-    return np.array([attribute(c) for c in materials.MATERIAL_CLASSES])
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    """(3,) angular velocity -> (3, 3) matrix with skew(w) @ r = w x r."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _point_volume(points: np.ndarray) -> float:
-    """m³ per point of a particle set, from the median nearest-neighbour distance."""
-    if len(points) < 2:
-        raise UserError("a particle body with a single point needs point_volume")
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(points).query(points, k=2)
-    spacing = float(np.median(d[:, 1]))
-    if not spacing > 0:
-        raise UserError("the body's points coincide (zero spacing); give point_volume or distinct points")
-    return spacing ** 3
-
-
 @dataclass
 class _Buffers:
     """Device arrays of one batch size (reused between runs)."""
@@ -154,10 +131,10 @@ class MPMSimulation(Simulation):
 
     Attributes (besides :class:`~unipixie.solvers.api.Simulation`'s)
     ----------
-    settings: :class:`MPMSettings`.
+    settings: :class:`~.mpm_settings.MPMSettings`.
     dx: grid cell size, m.
     particle_volume: (P,) m³ rest volume per particle.
-    material: :class:`SampledMaterial` of the P simulated particles (background removed).
+    material: :class:`~.material_sampling.SampledMaterial` of the P simulated particles (background removed).
     held: (P,) bool, particles held at rest (clamp box or a held-fixed class).
     tracked_held: (N,) bool, tracked points held at rest.
     setup_seconds: wall time of :func:`prepare`.
@@ -177,106 +154,19 @@ class MPMSimulation(Simulation):
 
     # ------------------------------------------------------------------ set-up
     def _setup(self, material: MaterialSpec, progress: Optional[Progress]):
-        s = self.settings
-        body = self.body
-        if progress:
-            progress.set_status("MPM: filling the body with particles")
-        if body.points is not None:
-            points = np.asarray(body.points, dtype=np.float64)
-            volume = float(body.point_volume) if body.point_volume is not None else _point_volume(points)
-            if not (math.isfinite(volume) and volume > 0):
-                raise UserError(f"the body's point_volume must be a positive number of m³, got {body.point_volume!r}")
-            dx = s.dx if s.dx is not None else s.particles_per_cell_axis * volume ** (1.0 / 3.0)
-            volumes = np.full(len(points), volume)
-        else:
-            dx = s.dx if s.dx is not None else self._automatic_dx(body.mesh)
-            spacing = dx / s.particles_per_cell_axis
-            estimate = float(np.prod(np.ceil(np.asarray(body.mesh.extents) / spacing)))
-            if estimate > 4 * s.max_particles:
-                raise UserError(f"filling the mesh at particle spacing {spacing:.3g} m needs about {estimate:,.0f} "
-                                f"lattice points (settings max_particles = {s.max_particles:,}); use a larger dx or "
-                                "fewer cells_across")
-            points = fill_mesh(body.mesh, spacing, jitter=s.jitter, seed=s.seed)
-            volume = spacing ** 3
-            if body.mesh.is_watertight and body.mesh.volume > 0:
-                # the lattice misses part of the cells cut by the surface: share the true volume (and mass)
-                volume = float(body.mesh.volume) / len(points)
-            volumes = np.full(len(points), volume)
-        if len(points) > s.max_particles:
-            raise UserError(f"the body needs {len(points):,} particles, more than settings max_particles = "
-                            f"{s.max_particles:,}; use a larger dx")
-        if progress:
-            progress.set_status(f"MPM: material at {len(points):,} particles")
-        sampled = sample_material(material, points, mode=s.material_sampling)
-        for name in ("E", "density"):
-            arr = getattr(sampled, name)
-            if not np.all(np.isfinite(arr) & (arr > 0)):
-                raise UserError(f"material {name} must be finite and positive at every particle")
-        if not np.all((sampled.nu > -1.0) & (sampled.nu < 0.5)):
-            raise UserError("material Poisson's ratio must lie in (-1, 0.5) at every particle")
-        bad_ids = np.setdiff1d(np.unique(sampled.material), list(materials.BY_ID))
-        if bad_ids.size:
-            raise UserError(f"unknown material class id(s) {bad_ids.tolist()}; valid ids are "
-                            f"0..{materials.NUM_CLASSES - 1}")
-        simulated = _per_class(lambda c: c.simulated)[sampled.material]
-        if not simulated.any():
-            raise UserError("no simulated material: every particle is 'background'")
-        points, volumes = points[simulated], volumes[simulated]
-        sampled = SampledMaterial(sampled.E[simulated], sampled.nu[simulated], sampled.density[simulated],
-                                  sampled.material[simulated])
-        sc = self.scenario
-        if sc.ground_height is not None:
-            below = int(np.sum(points[:, 2] < sc.ground_height - 1e-6))
-            if below:
-                raise UserError(f"{below} of {len(points)} particles start below the ground plane z = "
-                                f"{sc.ground_height:g} m; move the object up or set the scenario's ground lower/null")
-        rigid = _per_class(lambda c: c.held_fixed)[sampled.material]  # stationary: never deforms
-        held = sc.pinned_mask(points) | rigid  # clamped material is held but may deform
-        masses = sampled.density * volumes
-        v0 = sc.initial_velocities(points, masses)
-        v0[held] = 0.0
-        com = (points * masses[:, None]).sum(0) / masses.sum()
-        from scipy.spatial import cKDTree
-
-        _, nearest = cKDTree(points).query(self.tracked_rest)
-        tracked_held = sc.pinned_mask(self.tracked_rest) | held[nearest]
-        # rigid initial motion at the tracked points, about the particles' centre of mass
-        tv0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], self.tracked_rest - com)
-        tv0[tracked_held] = 0.0
-
-        self.dx = float(dx)
-        # a particle stands for a cube of material: its lower face touches the ground (solvers/contact.py)
-        spacing = float(np.mean(volumes)) ** (1.0 / 3.0)
-        self.contact_radius = 0.5 * spacing
-        self.contact_area = spacing * spacing
-        self.sample_positions = points
-        self.particle_volume = volumes
-        self.material = sampled
-        self.held = held
-        self.tracked_held = tracked_held
-        self._masses = masses
-        self._v0 = v0
-        self._tv0 = tv0
-        C0 = _skew(sc.initial_angular_velocity)
-        self._C0 = np.where(held[:, None, None], 0.0, C0[None]).astype(np.float32)
-        F0 = np.eye(3) if s.initial_deformation is None else s.initial_deformation
-        self._F0 = np.where(rigid[:, None, None], np.eye(3)[None], F0[None]).astype(np.float32)
-        U, _, Vt = np.linalg.svd(F0)
-        R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        from scipy.spatial.transform import Rotation
-
-        self._rot0 = Rotation.from_matrix(R0).as_quat().astype(np.float32)  # (x, y, z, w) as Warp stores quats
-        plastic0 = np.zeros(len(points))
-        snow = _per_class(lambda c: c.plasticity == "snow")[sampled.material]
-        plastic0[snow] = 1.0  # snow: plastic volume ratio Jp starts at 1
-        self._plastic0 = plastic0
-        self._anchor = np.array([0.0, 0.0, sc.ground_height if sc.ground_height is not None else 0.0])
-        self._rho_min = float(sampled.density.min())
-        # every deforming particle purely elastic fixed-corotated: the elastic-only P2G applies (see _choose_p2g)
-        self._elastic_only = all(
-            c.held_fixed or c.elasticity == "fixed_corotated" and c.plasticity == "none"
-            and not math.isfinite(float(c.params.get("yield_stress", math.inf)))
-            for c in (materials.BY_ID[int(i)] for i in np.unique(sampled.material)))
+        init = initial_particles(self.body, self.scenario, material, self.settings, self.device, self.tracked_rest,
+                                 progress)
+        self.warnings += init.warnings
+        self.thinnest_part = init.thinnest_part
+        self.dx = init.dx
+        self.contact_radius = init.contact_radius
+        self.contact_area = init.contact_area
+        self.sample_positions = init.positions
+        self.particle_volume = init.volumes
+        self.material = sampled = init.material
+        self.held = held = init.held
+        self.tracked_held = init.tracked_held
+        self._initial = init  # the rest state every run starts from
 
         if progress:
             progress.set_status("MPM: compiling kernels")
@@ -292,31 +182,6 @@ class MPMSimulation(Simulation):
         if tuning.scatter != "atomic" or tuning.split_g2p:
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
-
-    def _automatic_dx(self, mesh) -> float:
-        """dx (m) for a mesh body when the settings give none (see :class:`MPMSettings`); records a warning when the
-        particle budget keeps the thinnest parts under-resolved."""
-        from .sampling import thinnest_part
-
-        s = self.settings
-        extent = float(np.max(np.asarray(mesh.extents, dtype=np.float64)))
-        thin = thinnest_part(mesh)
-        dx = coarse = extent / s.cells_across
-        self.thinnest_part = thin
-        if not s.cells_across_thinnest or thin / s.cells_across_thinnest >= coarse:
-            return coarse
-        dx = thin / s.cells_across_thinnest
-        budget = s.auto_max_particles or AUTO_MAX_PARTICLES["cuda" if str(self.device).startswith("cuda") else "cpu"]
-        volume = float(mesh.volume) if mesh.is_watertight and mesh.volume > 0 else float(np.prod(mesh.extents))
-        budget_dx = s.particles_per_cell_axis * (volume / budget) ** (1.0 / 3.0)
-        if dx < budget_dx:  # the budget limits only the refinement for thin parts, never the extent's grid
-            dx = min(budget_dx, coarse)
-            self.warnings.append(f"MPM: the thinnest parts ({thin * 1000:.3g} mm) get only {thin / dx:.1f} cells "
-                                 f"across within the particle budget (settings auto_max_particles = "
-                                 f"{budget:,}); their bending is resolved coarsely - give dx or a "
-                                 "larger budget (a GPU affords millions of particles)")
-        self.thinnest_part = thin
-        return dx
 
     @property
     def particle_count(self) -> int:
@@ -374,10 +239,12 @@ class MPMSimulation(Simulation):
         if buf.initial is None:
             mu, lam = self.material.lame()
             f32 = np.float32
-            host = {"x": np.tile(self.sample_positions, (E, 1)).astype(f32), "v": np.tile(self._v0, (E, 1)).astype(f32),
-                    "C": np.tile(self._C0, (E, 1, 1)), "F": np.tile(self._F0, (E, 1, 1)),
-                    "rot": np.tile(self._rot0, (E * N, 1)), "plastic": np.tile(self._plastic0, E).astype(f32),
-                    "mass": np.tile(self._masses, E).astype(f32), "vol": np.tile(self.particle_volume, E).astype(f32),
+            rest = self._initial
+            host = {"x": np.tile(self.sample_positions, (E, 1)).astype(f32),
+                    "v": np.tile(rest.velocities, (E, 1)).astype(f32),
+                    "C": np.tile(rest.affine_velocity, (E, 1, 1)), "F": np.tile(rest.deformation, (E, 1, 1)),
+                    "rot": np.tile(rest.rotation, (E * N, 1)), "plastic": np.tile(rest.plastic, E).astype(f32),
+                    "mass": np.tile(rest.masses, E).astype(f32), "vol": np.tile(self.particle_volume, E).astype(f32),
                     "mu": np.tile(mu, E).astype(f32), "lam": np.tile(lam, E).astype(f32),
                     "code": np.tile(self._code, E), "pid": np.arange(E * N, dtype=np.int32)}
             P = buf.particles
@@ -438,7 +305,7 @@ class MPMSimulation(Simulation):
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
-        rho_min = self._rho_min
+        rho_min = self._initial.min_density
 
         # ---- initial state
         tuning = self._tuning()
@@ -449,7 +316,7 @@ class MPMSimulation(Simulation):
         tracked_h = np.ones(E * M_alloc, np.int32)
         if M:
             tracked0[:] = np.tile(self.tracked_rest, (E, 1))
-            tracked_v0[:] = np.tile(self._tv0, (E, 1))
+            tracked_v0[:] = np.tile(self._initial.tracked_velocities, (E, 1))
             tracked_h[:] = np.tile(self.tracked_held.astype(np.int32), E)
         T["x"].assign(tracked0)
         T["v"].assign(tracked_v0)
@@ -596,7 +463,7 @@ class MPMSimulation(Simulation):
         """The elastic-only P2G when every deforming particle is purely elastic fixed-corotated and no
         environment has the plasticity effect, else the general one (same results for such runs); with the
         scatter of the ``p2g_scatter`` setting."""
-        general = not (self._elastic_only and np.all(np.isinf(yield_stress)))
+        general = not (self._initial.elastic_only and np.all(np.isinf(yield_stress)))
         scatter = self._tuning().scatter
         if scatter == "atomic":
             return self._k.p2g_general if general else self._k.p2g_elastic
@@ -681,8 +548,8 @@ class MPMSimulation(Simulation):
         """Size the grid and set each environment's origin around its material's (E, 3) bounds."""
         s, dx = self.settings, self.dx
         margin = (s.domain_margin_cells + 2) * dx
-        cell_lo = np.floor((lo - margin - self._anchor) / dx).astype(np.int64)
-        cell_hi = np.ceil((hi + margin - self._anchor) / dx).astype(np.int64)
+        cell_lo = np.floor((lo - margin - self._initial.grid_anchor) / dx).astype(np.int64)
+        cell_hi = np.ceil((hi + margin - self._initial.grid_anchor) / dx).astype(np.int64)
         need = cell_hi - cell_lo + 1
         try:
             self._ensure_grid(buf, tuple(int(a) for a in need.max(0)))
@@ -694,7 +561,7 @@ class MPMSimulation(Simulation):
                 "cfl), lower E, or raise max_grid_nodes / use a larger dx") from None
         dims = np.array(buf.grid_dims, np.int64)
         origin_cell = cell_lo - (dims[None] - need) // 2
-        buf.env["origin"].assign((self._anchor[None] + origin_cell * dx).astype(np.float32))
+        buf.env["origin"].assign((self._initial.grid_anchor[None] + origin_cell * dx).astype(np.float32))
 
     def _step_frame(self, buf: _Buffers, E: int, N: int, M_alloc: int, first: int, stop: int, has_ground: int,
                     ground_z: float, progress: Optional[Progress]) -> None:
