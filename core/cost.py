@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..solvers.registry import SOLVERS
 from .errors import UserError
 
 LONG_JOB_SUBSTEPS = 20_000_000
@@ -73,23 +74,17 @@ def substep_seconds(solver: str, size: float, E: float, nu: float, density: floa
     """About how long one substep of ``solver`` is (s) for a body ``size`` metres across."""
     c = max(wave_speed(E, nu, density), 1e-9)
     if solver == "mpm":
-        from ..solvers.mpm import MPMSettings
-
-        d = MPMSettings()
+        d = SOLVERS["mpm"].defaults()
         dx = _setting(settings, "dx", None) or size / max(int(float(_setting(settings, "cells_across", d.cells_across))), 1)
         dt = float(_setting(settings, "cfl", d.cfl)) * float(dx) / c
         max_dt = _setting(settings, "max_dt", None)
         return min(dt, float(max_dt)) if max_dt else dt
     if solver == "spring_mass":
-        from ..solvers.spring_mass import SpringMassSettings
-
-        d = SpringMassSettings()
+        d = SOLVERS["spring_mass"].defaults()
         anchors = max(int(float(_setting(settings, "anchors", d.anchors))), 1)
         return float(_setting(settings, "safety", d.safety)) * size / anchors ** (1.0 / 3.0) / c
     if solver == "lbs":
-        from ..solvers.lbs import DEFAULT_MAX_DT
-
-        return float(_setting(settings, "max_dt", DEFAULT_MAX_DT))
+        return float(_setting(settings, "max_dt", SOLVERS["lbs"].defaults().max_dt))
     raise UserError(f"unknown solver {solver!r}")
 
 

@@ -38,6 +38,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ..solvers import registry as solver_registry
 from .errors import UserError
 from .progress import Progress, silent
 
@@ -103,7 +104,6 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
                  spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
                  sheet_size=(480, 240))
-SOLVER_LABELS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "spring-mass"}
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
 """The demo's bakes start in this order, the longest first (they run side by side on the CPU cores; measured on
 2 cores: spring-mass 83 s, each MPM plant about 70 s, the LBS duck 6 s)."""
@@ -192,7 +192,7 @@ def mpm_cells_for_budget(wave_speed: float, size: float, volume: float, frames: 
     solver's CFL bound with its default ``cfl``) and particles = volume / dx³ × (particles per cell) — an
     estimate (the solver also counts particle speeds).  Returns (cells across, estimated cost).
     """
-    from ..solvers.mpm import MPMSettings
+    from ..solvers.mpm_settings import MPMSettings
 
     s = MPMSettings()
     lo, hi = int(cells[0]), int(cells[1])
@@ -317,7 +317,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
         plants = []
         for k, (solver, a) in enumerate(bakes_todo):
             x = (k - 1.5) * gap
-            label = f"{SOLVER_LABELS[solver]} α={a:g}"
+            label = f"{solver_registry.SOLVERS[solver].label} α={a:g}"
             name = f"{PLANT.label} {label}"
             obj = plant if k == 0 else ds.duplicate(plant, name, x, 0.0)
             if k == 0:
@@ -328,10 +328,10 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
             ds.add_label(label, (x, -0.22, 0.01))
             plants.append(obj)
         x = 2.5 * gap
-        duck.name = duck.data.name = f"{DUCK.label} {SOLVER_LABELS['lbs']} α={plan.lbs_alpha:g}"
+        duck.name = duck.data.name = f"{DUCK.label} {solver_registry.SOLVERS['lbs'].label} α={plan.lbs_alpha:g}"
         ds.place_on_ground(duck, x, -0.3, plan.drop_height)
         _setup(duck, solver="lbs", alpha=plan.lbs_alpha, ground=ground, device=device)
-        ds.add_label(f"{SOLVER_LABELS['lbs']} α={plan.lbs_alpha:g}", (x, -0.42, 0.01))
+        ds.add_label(f"{solver_registry.SOLVERS['lbs'].label} α={plan.lbs_alpha:g}", (x, -0.42, 0.01))
         ds.add_camera(target=(0.45 * gap, 0.0, 0.36), distance=1.9 + 2.4 * gap)
         blend = out / BLEND_NAME
         bpy_save(blend)          # saved first: bakes write their point caches next to it
@@ -354,7 +354,7 @@ def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str =
                                   "object)")
         for src in (plants[0], duck):
             mine = [(solver, a) for o, solver, a in jobs if o is src or (src is plants[0] and o in plants)]
-            heads = tuple(h for h in ("mpm", "lbs", "spring_mass") if any(h in MODEL_HEADS[sv] for sv, _ in mine))
+            heads = tuple(h for h in solver_registry.SOLVER_NAMES if any(h in MODEL_HEADS[sv] for sv, _ in mine))
             s = PipelineSettings(**{**settings.to_dict(), "heads": heads, "alphas": tuple(a for _, a in mine)})
             t = time.perf_counter()
             pio.run_to_end(pio.predict_step(src, s), p.sub(0.5, 1.0, src.name))
@@ -506,11 +506,11 @@ class KernelWarmUp:
         """``job`` (a bake's job generator) once ``solver``'s kernels are compiled; yields while waiting."""
         event = self._done.get(solver)
         while event is not None and not event.wait(0.05):
-            yield 0.0, f"waiting for the {SOLVER_LABELS.get(solver, solver)} kernels to compile"
+            yield 0.0, f"waiting for the {solver_registry.SOLVERS[solver].label} kernels to compile"
         return (yield from job)
 
     def report(self) -> str:
-        done = ", ".join(f"{SOLVER_LABELS.get(k, k)} {v:.0f} s" for k, v in self.seconds.items())
+        done = ", ".join(f"{solver_registry.SOLVERS[k].label} {v:.0f} s" for k, v in self.seconds.items())
         return (f"Warp kernels compiled in the background ({done})" if done else "Warp kernels: no warm-up") + (
             f"; warm-up failed ({self.error}), the bakes compile" if self.error else "")
 

@@ -38,6 +38,7 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
+from ..solvers.registry import SOLVER_NAMES
 from .errors import UserError
 from .features import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT, FeatureOptions
 
@@ -80,7 +81,7 @@ CHANGE_REASONS = {
 }
 """Why a step is stale, by the input that differs."""
 
-DEFAULT_HEADS = ("mpm", "lbs", "spring_mass")
+DEFAULT_HEADS = SOLVER_NAMES
 """Heads the panel's Predict runs (every solver can then be baked from the sweep)."""
 
 
@@ -825,7 +826,7 @@ def exact_prediction(plan: ModelPlan, alpha: float, heads, progress=None, from_s
     if from_sweep and on_node.any() and all(h in have for h in heads):
         node = float(sweep.alphas[int(np.argmax(on_node))])
         return prediction_from_sweep(sweep, node), "from the α sweep", Path(plan.sweep)
-    want = tuple(h for h in ("mpm", "lbs", "spring_mass") if h in set(heads) | set(have))
+    want = tuple(h for h in SOLVER_NAMES if h in set(heads) | set(have))
     path = refined_path(plan, alpha, want)
     if path.is_file():
         try:

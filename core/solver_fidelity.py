@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..solvers.registry import SOLVERS
+
 STATED_ABOVE = 0.05
 """Relative departures from the reference larger than this (5 %, the solver issue's bar) are stated."""
 
@@ -37,8 +39,6 @@ METRIC_WORDS = {
     "contact_duration": "ground contact time",
 }
 """How the panel names each metric."""
-
-SOLVER_WORDS = {"mpm": "MPM", "lbs": "LBS", "spring_mass": "Spring-mass"}
 
 CANTILEVERS = ("cantilever_y", "cantilever_z")
 
@@ -68,7 +68,7 @@ def floor_lines(solver: str) -> list:
     departures = MEASURED_FLOORS.get(solver, ())
     if not departures:
         return []
-    lines = [f"{SOLVER_WORDS.get(solver, solver)} at its bake defaults, against the continuum:"]
+    lines = [f"{SOLVERS[solver].label} at its bake defaults, against the continuum:"]
     for d in sorted(departures, key=lambda d: -abs(d.error)):
         lines.append(f"{METRIC_WORDS.get(d.metric, d.metric)} {100.0 * d.error:+.0f} %")
     return lines

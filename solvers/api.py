@@ -11,7 +11,7 @@ parameters — the diagnosis fits effects this way::
     dragged = sim.run([effects.make("linear_drag", c=0.8)])
     many = sim.run_batch([[], [drag], [wind]])   # one launch per step where the solver allows
 
-Each solver module (``mpm``, ``spring_mass``, ``lbs``) defines a subclass of
+Each solver module (:data:`.registry.SOLVERS`) defines a subclass of
 :class:`Simulation` and a ``prepare(body, material, scenario, frame_times,
 device="cpu", settings=None, progress=None)`` function.
 """
@@ -30,21 +30,8 @@ from . import effects as effects_mod
 from .body import Body
 from .effects import Effect, EffectContext, PhysicsTerms
 from .material_sampling import MaterialSpec
+from .registry import canonical_solver
 from .scenario import Scenario
-
-SOLVERS = {"mpm": "mpm", "lbs": "lbs", "spring_mass": "spring_mass"}
-"""Solver name -> module in ``unipixie.solvers``."""
-
-ALIASES = {"spring": "spring_mass", "springmass": "spring_mass", "spring-mass": "spring_mass"}
-
-
-def canonical_solver(name: str) -> str:
-    key = (name or "").strip().lower()
-    key = ALIASES.get(key, key)
-    if key not in SOLVERS:
-        raise UserError(f"unknown solver {name!r}; choose one of: {', '.join(SOLVERS)}")
-    return key
-
 
 def check_frame_times(frame_times) -> np.ndarray:
     """(T,) float64 seconds, strictly increasing, starting at the initial state (T >= 1)."""
@@ -106,7 +93,8 @@ class Simulation:
 
 
 def solver_module(name: str):
-    return importlib.import_module(f"{__package__}.{SOLVERS[canonical_solver(name)]}")
+    """The module of the named solver (:data:`.registry.SOLVERS`; an alias allowed)."""
+    return importlib.import_module(f"{__package__}.{canonical_solver(name)}")
 
 
 def coerce_settings(solver: str, settings):
@@ -124,7 +112,7 @@ def coerce_settings(solver: str, settings):
 
 def prepare(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
             settings=None, progress: Progress | None = None) -> Simulation:
-    """Prepare a simulation with the named solver (``"mpm"``, ``"lbs"``, ``"spring_mass"``)."""
+    """Prepare a simulation with the named solver (one of :data:`.registry.SOLVER_NAMES`)."""
     return solver_module(solver).prepare(body, material, scenario, frame_times, device=device, settings=settings,
                                          progress=progress)
 

@@ -26,8 +26,7 @@ from typing import Any, ClassVar, Iterable, Mapping, Optional, Sequence
 import numpy as np
 
 from ..core.errors import UserError
-
-SOLVER_NAMES = ("mpm", "lbs", "spring_mass")
+from .registry import SOLVER_NAMES
 
 
 # --------------------------------------------------------------------------- parameters
@@ -210,6 +209,37 @@ class Effect:
 
     def to_dict(self) -> dict:
         return {"effect": self.name, "params": self.params_dict()}
+
+    def to_spec(self) -> str:
+        """The command-line form (``name:key=value,...``), read back by :func:`parse` (its inverse).
+
+        Numbers are written with 6 significant digits; ``stiffness_region`` regions as
+        ``box=x0,y0,z0,x1,y1,z1`` or ``points=i+j+...``.
+        """
+        return self.spec_of(self.values)
+
+    @classmethod
+    def spec_of(cls, values: Mapping[str, Any]) -> str:
+        """:meth:`to_spec` of the given parameter values without validating them (e.g. a panel's fields).
+
+        values: parameter name -> number, vector (any sequence) or region dict; parameters absent from
+        ``values`` are left out of the spec (``parse`` gives them their defaults).
+        """
+        parts = []
+        for p in cls.params:
+            if p.name not in values:
+                continue
+            v = values[p.name]
+            if isinstance(v, Mapping):
+                if "box" in v:
+                    parts.append("box=" + ",".join(f"{x:.6g}" for x in np.asarray(v["box"], dtype=float).reshape(-1)))
+                else:
+                    parts.append("points=" + "+".join(str(int(i)) for i in v["points"]))
+            elif p.size > 1 or np.ndim(v) > 0:
+                parts.append(f"{p.name}=" + ",".join(f"{float(x):.6g}" for x in v))
+            else:
+                parts.append(f"{p.name}={float(v):.6g}")
+        return cls.name + (":" + ",".join(parts) if parts else "")
 
     def __repr__(self) -> str:
         inner = ", ".join(f"{k}={v!r}" for k, v in self.params_dict().items())

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .constitutive import von_mises_hencky_f64
+
 vec9d = wp.types.vector(length=9, dtype=wp.float64)
 mat99d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
 
@@ -228,19 +230,10 @@ def return_map(Z: wp.array3d(dtype=wp.float64), G: wp.array3d(dtype=wp.float64),
     tiny = wp.float64(1.0e-6)
     if s0 < tiny or s1 < tiny or s2 < tiny:
         return  # inverted or collapsed: leave to the elastic law
-    e0 = wp.log(s0)
-    e1 = wp.log(s1)
-    e2 = wp.log(s2)
-    mean = (e0 + e1 + e2) / wp.float64(3.0)
-    d0 = e0 - mean
-    d1 = e1 - mean
-    d2 = e2 - mean
-    norm = wp.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    limit = wp.sqrt(wp.float64(2.0) / wp.float64(3.0)) * ys / (wp.float64(2.0) * mu[e, c])
-    if norm <= limit:
+    eps, dgamma = von_mises_hencky_f64(wp.vec3d(wp.log(s0), wp.log(s1), wp.log(s2)), mu[e, c], ys)
+    if not (dgamma > wp.float64(0.0)):
         return
-    k = limit / norm
-    Snew = wp.mat33d(wp.exp(mean + k * d0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.exp(mean + k * d1),
-                     wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.exp(mean + k * d2))
+    Snew = wp.mat33d(wp.exp(eps[0]), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.exp(eps[1]),
+                     wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.exp(eps[2]))
     Fe_new = U * Snew * wp.transpose(V)
     plastic_inv[e, c] = wp.inverse(Fc) * Fe_new

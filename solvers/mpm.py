@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -35,16 +35,15 @@ from . import materials
 from .api import Simulation
 from .body import Body
 from .effects import PhysicsTerms
-from .material_sampling import MaterialSpec, SampledMaterial, sample_material
-from .sampling import fill_mesh
+from .material_sampling import MaterialSpec
+from .mpm_particles import initial_particles
+from .mpm_settings import MPMSettings
 from .scenario import Scenario
 
 SOLVER_NAME = "mpm"
 ELASTIC_RELEASE_FRACTION = 0.1
 """Speed a particle may gain from released elastic strain within a chunk, as a fraction of the wave speed."""
 TRANSFER_SCHEME = "MLS-MPM (APIC affine transfer), quadratic B-splines, explicit symplectic Euler"
-P2G_SCATTER_MODES = ("atomic", "vector", "warp")
-"""How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
 CUDA_GRAPH_SUBSTEPS = 16
 """Default of ``graph_substeps`` on CUDA: substeps per captured graph (launch overhead ~1 µs per graph)."""
 BUFFER_CACHE_BYTES = 1 << 30
@@ -63,176 +62,6 @@ class _Tuning:
     graph_substeps: int
     block_dim: int
     sort_interval: int
-
-
-# ------------------------------------------------------------------------------------------ settings
-DEFAULT_CELLS_ACROSS = 32
-"""Grid cells across a mesh body's largest extent by default."""
-DEFAULT_CELLS_ACROSS_THINNEST = 4
-"""Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: a clamped bar four cells thick
-sags 1.4–5.8 % more than Euler–Bernoulli and vibrates within 0.8 % of its frequency)."""
-AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
-"""Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
-
-
-@dataclass
-class MPMSettings:
-    """Numerical settings of the MPM solver (SI units).
-
-    dx: grid cell size in metres; ``None`` = for a mesh, the finer of the body's largest extent / ``cells_across``
-        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, the
-        latter no finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
-        ``particles_per_cell_axis`` × the point spacing.
-    cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None); ``None`` =
-        :data:`DEFAULT_CELLS_ACROSS`.
-    cells_across_thinnest: grid cells across the thinnest parts of a mesh body (when ``dx`` is None): a slender
-        bar, a trunk or a leaf bends as the continuum does only with several cells across it
-        (docs/fidelity.md measures how many); 0 = the largest extent alone decides; ``None`` =
-        :data:`DEFAULT_CELLS_ACROSS_THINNEST` when ``cells_across`` is not given either (the bake default),
-        0 when it is (a caller that asks for N cells across gets N cells across, as the demo and tests do).
-    auto_max_particles: the particle budget of the automatic ``dx``; ``None`` = :data:`AUTO_MAX_PARTICLES`
-        of the device (a GPU affords ten times a CPU's particles in the same wall time).
-    particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
-        particle volume = cell volume / particles per cell.
-    jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
-    seed: random seed of the jitter.
-    cfl: the time step is at most ``cfl · dx / (c + |v|max + |a| Δt_frame)`` with
-        c = sqrt((λ + 2μ)/ρ) the largest elastic (P-)wave speed.
-    viscous_cfl: with material damping η the time step is also at most ``viscous_cfl · ρ dx² / η``.
-    max_dt: a user cap on the time step in seconds (``None`` = no cap).
-    max_substeps_per_frame: a frame needing more substeps than this stops the run as diverged.
-    domain_margin_cells: empty cells kept around the material (plus the distance it can travel in
-        one frame); the grid follows the material each frame.
-    max_grid_nodes: largest grid (nodes per environment) the run may grow to.
-    max_particles: refuse bodies that would need more particles than this.
-    material_sampling: ``"nearest"`` or ``"trilinear"`` lookup of voxel material fields.
-    initial_deformation: optional (3, 3) elastic deformation gradient every particle starts with
-        (the body is given in its deformed shape, e.g. a pre-stretched bar); ``None`` = identity.
-    sort_particles: reorder particles by grid cell before every chunk of substeps (memory locality;
-        on a GPU it also lets a warp's particles share stencils, which the ``"warp"`` scatter exploits).
-
-    GPU tuning (the results do not depend on them beyond float reassociation; ``None``/``"auto"``
-    picks the device's default, the CPU's being the plain kernels):
-
-    p2g_scatter: how P2G adds to the grid: ``"atomic"`` (one Warp vec4 atomic = four scalar atomics
-        per node), ``"vector"`` (one 16-byte vector reduction per node on sm_90+), ``"warp"``
-        (warp-aggregated per stencil, then vector reductions) or ``"auto"`` (``"warp"`` on CUDA,
-        ``"atomic"`` on the CPU).
-    split_g2p: gather to particles and to tracked points in two kernels (fewer registers for the
-        particles); ``None`` = on CUDA only.
-    graph_substeps: replay substeps as captured graphs of up to this many substeps (0 = launch each
-        kernel from Python); ``None`` = 16 on CUDA, 0 on the CPU.
-    block_dim: threads per block of the substep kernels (a multiple of 32, at most 1024).
-    sort_interval: also re-sort the particles every this many substeps within a chunk (0 = once per
-        chunk).
-    """
-
-    dx: Optional[float] = None
-    cells_across: Optional[int] = None
-    cells_across_thinnest: Optional[int] = None
-    auto_max_particles: Optional[int] = None
-    particles_per_cell_axis: int = 2
-    jitter: float = 0.0
-    seed: int = 0
-    cfl: float = 0.4
-    viscous_cfl: float = 0.1
-    max_dt: Optional[float] = None
-    max_substeps_per_frame: int = 20000
-    domain_margin_cells: int = 4
-    max_grid_nodes: int = 1 << 25
-    max_particles: int = 20_000_000
-    material_sampling: str = "nearest"
-    initial_deformation: Optional[np.ndarray] = None
-    sort_particles: bool = True
-    p2g_scatter: str = "auto"
-    split_g2p: Optional[bool] = None
-    graph_substeps: Optional[int] = None
-    block_dim: int = 256
-    sort_interval: int = 0
-
-    def __post_init__(self):
-        def positive(name, value, integer=False):
-            try:
-                x = int(value) if integer else float(value)
-            except (TypeError, ValueError):
-                raise UserError(f"MPM setting '{name}' must be a number, got {value!r}") from None
-            if not (math.isfinite(x) and x > 0):
-                raise UserError(f"MPM setting '{name}' must be positive, got {value!r}")
-            return x
-
-        if self.dx is not None:
-            self.dx = positive("dx", self.dx)
-        if self.max_dt is not None:
-            self.max_dt = positive("max_dt", self.max_dt)
-        if self.cells_across_thinnest is None:
-            self.cells_across_thinnest = DEFAULT_CELLS_ACROSS_THINNEST if self.cells_across is None else 0
-        if self.cells_across is None:
-            self.cells_across = DEFAULT_CELLS_ACROSS
-        self.cells_across_thinnest = int(self.cells_across_thinnest)
-        if self.cells_across_thinnest < 0:
-            raise UserError(f"MPM setting 'cells_across_thinnest' must be 0 (off) or positive, got "
-                            f"{self.cells_across_thinnest}")
-        if self.auto_max_particles is not None:
-            self.auto_max_particles = positive("auto_max_particles", self.auto_max_particles, integer=True)
-        for name in ("cells_across", "particles_per_cell_axis",
-                     "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
-            setattr(self, name, positive(name, getattr(self, name), integer=True))
-        self.cfl = positive("cfl", self.cfl)
-        self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
-        if self.cfl > 1.0:
-            raise UserError(f"MPM setting 'cfl' must be at most 1 (0.3-0.5 is usual), got {self.cfl}")
-        self.domain_margin_cells = int(self.domain_margin_cells)
-        if self.domain_margin_cells < 1:
-            raise UserError("MPM setting 'domain_margin_cells' must be at least 1")
-        self.jitter = float(self.jitter)
-        if not 0.0 <= self.jitter <= 1.0:
-            raise UserError(f"MPM setting 'jitter' must lie in [0, 1], got {self.jitter}")
-        if self.material_sampling not in ("nearest", "trilinear"):
-            raise UserError(f"MPM setting 'material_sampling' must be 'nearest' or 'trilinear', "
-                            f"got {self.material_sampling!r}")
-        if self.p2g_scatter not in ("auto",) + P2G_SCATTER_MODES:
-            raise UserError(f"MPM setting 'p2g_scatter' must be one of {('auto',) + P2G_SCATTER_MODES}, "
-                            f"got {self.p2g_scatter!r}")
-        if self.split_g2p is not None:
-            self.split_g2p = bool(self.split_g2p)
-        for name in ("graph_substeps", "sort_interval"):
-            value = getattr(self, name)
-            if value is None and name == "graph_substeps":
-                continue
-            try:
-                value = int(value)
-            except (TypeError, ValueError):
-                raise UserError(f"MPM setting '{name}' must be a whole number, got {value!r}") from None
-            if value < 0:
-                raise UserError(f"MPM setting '{name}' must be 0 or more, got {value}")
-            setattr(self, name, value)
-        try:
-            self.block_dim = int(self.block_dim)
-        except (TypeError, ValueError):
-            raise UserError(f"MPM setting 'block_dim' must be a whole number, got {self.block_dim!r}") from None
-        if not (32 <= self.block_dim <= 1024 and self.block_dim % 32 == 0):
-            raise UserError(f"MPM setting 'block_dim' must be a multiple of 32 from 32 to 1024, got {self.block_dim}")
-        if self.initial_deformation is not None:
-            F = np.asarray(self.initial_deformation, dtype=np.float64)
-            if F.shape != (3, 3) or not np.all(np.isfinite(F)) or np.linalg.det(F) <= 0:
-                raise UserError("MPM setting 'initial_deformation' must be a finite 3x3 matrix with positive "
-                                "determinant")
-            self.initial_deformation = F
-
-    @classmethod
-    def from_any(cls, settings) -> "MPMSettings":
-        """``None`` (defaults), an :class:`MPMSettings`, or a dict of its fields."""
-        if settings is None:
-            return cls()
-        if isinstance(settings, cls):
-            return settings
-        if isinstance(settings, dict):
-            known = {f.name for f in fields(cls)}
-            unknown = sorted(set(settings) - known)
-            if unknown:
-                raise UserError(f"unknown MPM setting(s) {unknown}; known: {sorted(known)}")
-            return cls(**settings)
-        raise UserError(f"MPM settings must be a dict or MPMSettings, got {type(settings).__name__}")
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -255,29 +84,6 @@ def _class_law_table(wp, kernels, device):
         law.max_hardening = float(p.get("max_hardening", math.inf))
         laws.append(law)
     return wp.array(laws, dtype=kernels.ClassLaw, device=device)
-
-
-def _per_class(attribute) -> np.ndarray:
-    """(NUM_CLASSES,) array of ``attribute(material_class)`` indexed by class id (index it with class ids)."""
-    return np.array([attribute(c) for c in materials.MATERIAL_CLASSES])
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    """(3,) angular velocity -> (3, 3) matrix with skew(w) @ r = w x r."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _point_volume(points: np.ndarray) -> float:
-    """m³ per point of a particle set, from the median nearest-neighbour distance."""
-    if len(points) < 2:
-        raise UserError("a particle body with a single point needs point_volume")
-    from scipy.spatial import cKDTree
-
-    d, _ = cKDTree(points).query(points, k=2)
-    spacing = float(np.median(d[:, 1]))
-    if not spacing > 0:
-        raise UserError("the body's points coincide (zero spacing); give point_volume or distinct points")
-    return spacing ** 3
 
 
 @dataclass
@@ -325,10 +131,10 @@ class MPMSimulation(Simulation):
 
     Attributes (besides :class:`~unipixie.solvers.api.Simulation`'s)
     ----------
-    settings: :class:`MPMSettings`.
+    settings: :class:`~.mpm_settings.MPMSettings`.
     dx: grid cell size, m.
     particle_volume: (P,) m³ rest volume per particle.
-    material: :class:`SampledMaterial` of the P simulated particles (background removed).
+    material: :class:`~.material_sampling.SampledMaterial` of the P simulated particles (background removed).
     held: (P,) bool, particles held at rest (clamp box or a held-fixed class).
     tracked_held: (N,) bool, tracked points held at rest.
     setup_seconds: wall time of :func:`prepare`.
@@ -348,107 +154,19 @@ class MPMSimulation(Simulation):
 
     # ------------------------------------------------------------------ set-up
     def _setup(self, material: MaterialSpec, progress: Optional[Progress]):
-        s = self.settings
-        body = self.body
-        if progress:
-            progress.set_status("MPM: filling the body with particles")
-        if body.points is not None:
-            points = np.asarray(body.points, dtype=np.float64)
-            volume = float(body.point_volume) if body.point_volume is not None else _point_volume(points)
-            if not (math.isfinite(volume) and volume > 0):
-                raise UserError(f"the body's point_volume must be a positive number of m³, got {body.point_volume!r}")
-            dx = s.dx if s.dx is not None else s.particles_per_cell_axis * volume ** (1.0 / 3.0)
-            volumes = np.full(len(points), volume)
-        else:
-            dx = s.dx if s.dx is not None else self._automatic_dx(body.mesh)
-            spacing = dx / s.particles_per_cell_axis
-            estimate = float(np.prod(np.ceil(np.asarray(body.mesh.extents) / spacing)))
-            if estimate > 4 * s.max_particles:
-                raise UserError(f"filling the mesh at particle spacing {spacing:.3g} m needs about {estimate:,.0f} "
-                                f"lattice points (settings max_particles = {s.max_particles:,}); use a larger dx or "
-                                "fewer cells_across")
-            points = fill_mesh(body.mesh, spacing, jitter=s.jitter, seed=s.seed)
-            volume = spacing ** 3
-            if body.mesh.is_watertight and body.mesh.volume > 0:
-                # the lattice misses part of the cells cut by the surface: share the true volume (and mass)
-                volume = float(body.mesh.volume) / len(points)
-            volumes = np.full(len(points), volume)
-        if len(points) > s.max_particles:
-            raise UserError(f"the body needs {len(points):,} particles, more than settings max_particles = "
-                            f"{s.max_particles:,}; use a larger dx")
-        if progress:
-            progress.set_status(f"MPM: material at {len(points):,} particles")
-        sampled = sample_material(material, points, mode=s.material_sampling)
-        for name in ("E", "density"):
-            arr = getattr(sampled, name)
-            if not np.all(np.isfinite(arr) & (arr > 0)):
-                raise UserError(f"material {name} must be finite and positive at every particle")
-        if not np.all((sampled.nu > -1.0) & (sampled.nu < 0.5)):
-            raise UserError("material Poisson's ratio must lie in (-1, 0.5) at every particle")
-        bad_ids = np.setdiff1d(np.unique(sampled.material), list(materials.BY_ID))
-        if bad_ids.size:
-            raise UserError(f"unknown material class id(s) {bad_ids.tolist()}; valid ids are "
-                            f"0..{materials.NUM_CLASSES - 1}")
-        simulated = _per_class(lambda c: c.simulated)[sampled.material]
-        if not simulated.any():
-            raise UserError("no simulated material: every particle is 'background'")
-        points, volumes = points[simulated], volumes[simulated]
-        sampled = SampledMaterial(sampled.E[simulated], sampled.nu[simulated], sampled.density[simulated],
-                                  sampled.material[simulated])
-        sc = self.scenario
-        if sc.ground_height is not None:
-            below = int(np.sum(points[:, 2] < sc.ground_height - 1e-6))
-            if below:
-                raise UserError(f"{below} of {len(points)} particles start below the ground plane z = "
-                                f"{sc.ground_height:g} m; move the object up or set the scenario's ground lower/null")
-        rigid = _per_class(lambda c: c.held_fixed)[sampled.material]  # stationary: never deforms
-        held = sc.pinned_mask(points) | rigid  # clamped material is held but may deform
-        masses = sampled.density * volumes
-        v0 = sc.initial_velocities(points, masses)
-        v0[held] = 0.0
-        com = (points * masses[:, None]).sum(0) / masses.sum()
-        from scipy.spatial import cKDTree
-
-        _, nearest = cKDTree(points).query(self.tracked_rest)
-        tracked_held = sc.pinned_mask(self.tracked_rest) | held[nearest]
-        # rigid initial motion at the tracked points, about the particles' centre of mass
-        tv0 = sc.initial_velocity[None, :] + np.cross(sc.initial_angular_velocity[None, :], self.tracked_rest - com)
-        tv0[tracked_held] = 0.0
-
-        self.dx = float(dx)
-        # a particle stands for a cube of material: its lower face touches the ground (solvers/contact.py)
-        spacing = float(np.mean(volumes)) ** (1.0 / 3.0)
-        self.contact_radius = 0.5 * spacing
-        self.contact_area = spacing * spacing
-        self.sample_positions = points
-        self.particle_volume = volumes
-        self.material = sampled
-        self.held = held
-        self.tracked_held = tracked_held
-        self._masses = masses
-        self._v0 = v0
-        self._tv0 = tv0
-        C0 = _skew(sc.initial_angular_velocity)
-        self._C0 = np.where(held[:, None, None], 0.0, C0[None]).astype(np.float32)
-        F0 = np.eye(3) if s.initial_deformation is None else s.initial_deformation
-        # particles store the displacement gradient H = F − I (mpm_kernels.displacement_gradient_update)
-        self._H0 = np.where(rigid[:, None, None], 0.0, (F0 - np.eye(3))[None]).astype(np.float32)
-        U, _, Vt = np.linalg.svd(F0)
-        R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        from scipy.spatial.transform import Rotation
-
-        self._rot0 = Rotation.from_matrix(R0).as_quat().astype(np.float32)  # (x, y, z, w) as Warp stores quats
-        plastic0 = np.zeros(len(points))
-        snow = _per_class(lambda c: c.plasticity == "snow")[sampled.material]
-        plastic0[snow] = 1.0  # snow: plastic volume ratio Jp starts at 1
-        self._plastic0 = plastic0
-        self._anchor = np.array([0.0, 0.0, sc.ground_height if sc.ground_height is not None else 0.0])
-        self._rho_min = float(sampled.density.min())
-        # every deforming particle purely elastic fixed-corotated: the elastic-only P2G applies (see _choose_p2g)
-        self._elastic_only = all(
-            c.held_fixed or c.elasticity == "fixed_corotated" and c.plasticity == "none"
-            and not math.isfinite(float(c.params.get("yield_stress", math.inf)))
-            for c in (materials.BY_ID[int(i)] for i in np.unique(sampled.material)))
+        init = initial_particles(self.body, self.scenario, material, self.settings, self.device, self.tracked_rest,
+                                 progress)
+        self.warnings += init.warnings
+        self.thinnest_part = init.thinnest_part
+        self.dx = init.dx
+        self.contact_radius = init.contact_radius
+        self.contact_area = init.contact_area
+        self.sample_positions = init.positions
+        self.particle_volume = init.volumes
+        self.material = sampled = init.material
+        self.held = held = init.held
+        self.tracked_held = init.tracked_held
+        self._initial = init  # the rest state every run starts from
 
         if progress:
             progress.set_status("MPM: compiling kernels")
@@ -464,31 +182,6 @@ class MPMSimulation(Simulation):
         if tuning.scatter != "atomic" or tuning.split_g2p:
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
         self._laws = _class_law_table(wp, mpm_kernels, self.device)
-
-    def _automatic_dx(self, mesh) -> float:
-        """dx (m) for a mesh body when the settings give none (see :class:`MPMSettings`); records a warning when the
-        particle budget keeps the thinnest parts under-resolved."""
-        from .sampling import thinnest_part
-
-        s = self.settings
-        extent = float(np.max(np.asarray(mesh.extents, dtype=np.float64)))
-        thin = thinnest_part(mesh)
-        dx = coarse = extent / s.cells_across
-        self.thinnest_part = thin
-        if not s.cells_across_thinnest or thin / s.cells_across_thinnest >= coarse:
-            return coarse
-        dx = thin / s.cells_across_thinnest
-        budget = s.auto_max_particles or AUTO_MAX_PARTICLES["cuda" if str(self.device).startswith("cuda") else "cpu"]
-        volume = float(mesh.volume) if mesh.is_watertight and mesh.volume > 0 else float(np.prod(mesh.extents))
-        budget_dx = s.particles_per_cell_axis * (volume / budget) ** (1.0 / 3.0)
-        if dx < budget_dx:  # the budget limits only the refinement for thin parts, never the extent's grid
-            dx = min(budget_dx, coarse)
-            self.warnings.append(f"MPM: the thinnest parts ({thin * 1000:.3g} mm) get only {thin / dx:.1f} cells "
-                                 f"across within the particle budget (settings auto_max_particles = "
-                                 f"{budget:,}); their bending is resolved coarsely - give dx or a "
-                                 "larger budget (a GPU affords millions of particles)")
-        self.thinnest_part = thin
-        return dx
 
     @property
     def particle_count(self) -> int:
@@ -546,10 +239,12 @@ class MPMSimulation(Simulation):
         if buf.initial is None:
             mu, lam = self.material.lame()
             f32 = np.float32
-            host = {"x": np.tile(self.sample_positions, (E, 1)).astype(f32), "v": np.tile(self._v0, (E, 1)).astype(f32),
-                    "C": np.tile(self._C0, (E, 1, 1)), "H": np.tile(self._H0, (E, 1, 1)),
-                    "rot": np.tile(self._rot0, (E * N, 1)), "plastic": np.tile(self._plastic0, E).astype(f32),
-                    "mass": np.tile(self._masses, E).astype(f32), "vol": np.tile(self.particle_volume, E).astype(f32),
+            rest = self._initial
+            host = {"x": np.tile(self.sample_positions, (E, 1)).astype(f32),
+                    "v": np.tile(rest.velocities, (E, 1)).astype(f32),
+                    "C": np.tile(rest.affine_velocity, (E, 1, 1)), "H": np.tile(rest.displacement_gradient, (E, 1, 1)),
+                    "rot": np.tile(rest.rotation, (E * N, 1)), "plastic": np.tile(rest.plastic, E).astype(f32),
+                    "mass": np.tile(rest.masses, E).astype(f32), "vol": np.tile(self.particle_volume, E).astype(f32),
                     "mu": np.tile(mu, E).astype(f32), "lam": np.tile(lam, E).astype(f32),
                     "code": np.tile(self._code, E), "pid": np.arange(E * N, dtype=np.int32)}
             P = buf.particles
@@ -610,7 +305,7 @@ class MPMSimulation(Simulation):
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
-        rho_min = self._rho_min
+        rho_min = self._initial.min_density
 
         # ---- initial state
         tuning = self._tuning()
@@ -621,7 +316,7 @@ class MPMSimulation(Simulation):
         tracked_h = np.ones(E * M_alloc, np.int32)
         if M:
             tracked0[:] = np.tile(self.tracked_rest, (E, 1))
-            tracked_v0[:] = np.tile(self._tv0, (E, 1))
+            tracked_v0[:] = np.tile(self._initial.tracked_velocities, (E, 1))
             tracked_h[:] = np.tile(self.tracked_held.astype(np.int32), E)
         T["x"].assign(tracked0)
         T["v"].assign(tracked_v0)
@@ -768,7 +463,7 @@ class MPMSimulation(Simulation):
         """The elastic-only P2G when every deforming particle is purely elastic fixed-corotated and no
         environment has the plasticity effect, else the general one (same results for such runs); with the
         scatter of the ``p2g_scatter`` setting."""
-        general = not (self._elastic_only and np.all(np.isinf(yield_stress)))
+        general = not (self._initial.elastic_only and np.all(np.isinf(yield_stress)))
         scatter = self._tuning().scatter
         if scatter == "atomic":
             return self._k.p2g_general if general else self._k.p2g_elastic
@@ -853,8 +548,8 @@ class MPMSimulation(Simulation):
         """Size the grid and set each environment's origin around its material's (E, 3) bounds."""
         s, dx = self.settings, self.dx
         margin = (s.domain_margin_cells + 2) * dx
-        cell_lo = np.floor((lo - margin - self._anchor) / dx).astype(np.int64)
-        cell_hi = np.ceil((hi + margin - self._anchor) / dx).astype(np.int64)
+        cell_lo = np.floor((lo - margin - self._initial.grid_anchor) / dx).astype(np.int64)
+        cell_hi = np.ceil((hi + margin - self._initial.grid_anchor) / dx).astype(np.int64)
         need = cell_hi - cell_lo + 1
         try:
             self._ensure_grid(buf, tuple(int(a) for a in need.max(0)))
@@ -866,7 +561,7 @@ class MPMSimulation(Simulation):
                 "cfl), lower E, or raise max_grid_nodes / use a larger dx") from None
         dims = np.array(buf.grid_dims, np.int64)
         origin_cell = cell_lo - (dims[None] - need) // 2
-        buf.env["origin"].assign((self._anchor[None] + origin_cell * dx).astype(np.float32))
+        buf.env["origin"].assign((self._initial.grid_anchor[None] + origin_cell * dx).astype(np.float32))
 
     def _step_frame(self, buf: _Buffers, E: int, N: int, M_alloc: int, first: int, stop: int, has_ground: int,
                     ground_z: float, progress: Optional[Progress]) -> None:

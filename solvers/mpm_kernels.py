@@ -25,27 +25,20 @@ separate runs.  The substep index is the launch parameter ``substep`` plus the d
 ``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
 :func:`advance_step`, so one graph serves every position in a frame (:func:`set_step` starts it).
 
-GPU-tuned variants (vector and warp-aggregated scatter, split G2P) are in :mod:`.mpm_kernels_cuda`;
-they share this module's physics functions.
+The material laws (stress, return mappings) are :mod:`.constitutive`'s.  GPU-tuned variants (vector and
+warp-aggregated scatter, split G2P) are in :mod:`.mpm_kernels_cuda`; they share this module's physics functions
+(:func:`particle_transfer`: what a particle sends to the grid).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from . import materials
+from .constitutive import (LAW_WEAKLY_COMPRESSIBLE, PLASTIC_SNOW, ClassLaw, constitutive_update,
+                           elastic_fixed_corotated)
 from .contact_kernels import ground_contact_impulse, rigid_contact_stiffness
 
 wp.set_module_options({"enable_backward": False})
-
-# Constitutive-law codes: positions in the material registry's tuples (one definition).
-LAW_FIXED_COROTATED = wp.constant(materials.ELASTICITY_MODELS.index("fixed_corotated"))
-LAW_STVK_HENCKY = wp.constant(materials.ELASTICITY_MODELS.index("stvk_hencky"))
-LAW_WEAKLY_COMPRESSIBLE = wp.constant(materials.ELASTICITY_MODELS.index("weakly_compressible"))
-PLASTIC_NONE = wp.constant(materials.PLASTICITY_MODELS.index("none"))
-PLASTIC_VON_MISES = wp.constant(materials.PLASTICITY_MODELS.index("von_mises"))
-PLASTIC_DRUCKER_PRAGER = wp.constant(materials.PLASTICITY_MODELS.index("drucker_prager"))
-PLASTIC_SNOW = wp.constant(materials.PLASTICITY_MODELS.index("snow"))
 
 HELD_FLAG = wp.constant(16)
 """``code = class_id + HELD_FLAG`` marks a particle held at its rest position.
@@ -55,12 +48,6 @@ of any other class (material in the clamp box) keep their position and zero velo
 deform with the grid (their ``C`` and ``F`` follow the node velocities) and carry stress, so the
 stress is continuous into the clamp, as for material embedded in a clamp."""
 
-MIN_SINGULAR_VALUE = wp.constant(1.0e-4)
-"""Lower clamp of singular values before taking logarithms (Hencky strain of inverted cells)."""
-
-MIN_FLUID_J = wp.constant(1.0e-2)
-"""Lower clamp of the fluid's volume ratio J (keeps the pressure law finite under extreme compression)."""
-
 HELD_MASS_FRACTION = wp.constant(0.25)
 """A grid node is fixed when at least this fraction of its mass comes from held particles.
 
@@ -69,115 +56,6 @@ plane outside about 5 %: a quarter fixes the first and frees the second."""
 
 TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
 """Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
-
-ROTATION_ITERATIONS = 1
-"""Warm-started rotation-extraction iterations per substep (fast path of the fixed-corotated law)."""
-
-
-@wp.struct
-class ClassLaw:
-    """Constitutive and plastic model of one material class (built from the registry)."""
-
-    elastic: int
-    plastic: int
-    held: int
-    yield_stress: float  # Pa, inf when the class has no yield of its own
-    softening: float  # yield multiplier exp(-softening * equivalent plastic strain)
-    dp_alpha: float  # Drucker-Prager cone coefficient sqrt(2/3) * 2 sin(phi) / (3 - sin(phi))
-    theta_c: float
-    theta_s: float
-    hardening: float
-    max_hardening: float
-
-
-# ------------------------------------------------------------------------------ constitutive laws
-@wp.func
-def kirchhoff_fixed_corotated(F: wp.mat33, U: wp.mat33, sig: wp.vec3, V: wp.mat33, mu: float, lam: float):
-    """Kirchhoff stress τ = 2μ (F − R) Fᵀ + λ J (J − 1) I of the fixed-corotated model, Pa."""
-    J = sig[0] * sig[1] * sig[2]
-    R = U @ wp.transpose(V)
-    return 2.0 * mu * (F - R) @ wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
-
-
-@wp.func
-def rotation_part(A: wp.mat33, q0: wp.quat):
-    """Rotation R of the polar decomposition A = R S, as a unit quaternion, refined from the guess ``q0``.
-
-    Newton iteration on the rotation: with A' = Rᵀ A = Q S and Q ≈ I + [θ]×, the skew part of A'
-    gives axial(A' − A'ᵀ) = (tr(S) I − S) θ with S = sym(A'); solve for θ and set R ← R rot(θ),
-    where rot(θ) is the rotation of the quaternion (θ/2, 1) normalised (no trigonometric functions;
-    its angle agrees with |θ| to third order).  Converges quadratically, so warm-started with the
-    previous substep's rotation ``ROTATION_ITERATIONS`` iterations reach float32 round-off.  When
-    tr(S) I − S is near-singular (cells close to inversion) the step falls back to θ = axial / tr(S)
-    (Müller et al. 2016's rotation-extraction step), which converges to the rotation maximising
-    tr(Rᵀ A): the sign-corrected SVD's U Vᵀ the fixed-corotated model needs for inverted cells.
-    """
-    q = q0
-    for _it in range(ROTATION_ITERATIONS):
-        Ap = wp.transpose(wp.quat_to_matrix(q)) @ A
-        b = wp.vec3(Ap[2, 1] - Ap[1, 2], Ap[0, 2] - Ap[2, 0], Ap[1, 0] - Ap[0, 1])
-        S = 0.5 * (Ap + wp.transpose(Ap))
-        tr = S[0, 0] + S[1, 1] + S[2, 2]
-        M = wp.identity(n=3, dtype=float) * tr - S
-        detM = wp.determinant(M)
-        theta = b / (wp.abs(tr) + 1.0e-20)
-        if wp.abs(detM) > 1.0e-3 * wp.abs(tr * tr * tr):
-            theta = wp.inverse(M) @ b
-        half = 0.5 * theta
-        q = wp.normalize(wp.mul(q, wp.quat(half[0], half[1], half[2], 1.0)))
-    return q
-
-
-@wp.func
-def hencky_strain(sig: wp.vec3):
-    return wp.vec3(wp.log(wp.max(sig[0], MIN_SINGULAR_VALUE)), wp.log(wp.max(sig[1], MIN_SINGULAR_VALUE)),
-                   wp.log(wp.max(sig[2], MIN_SINGULAR_VALUE)))
-
-
-@wp.func
-def kirchhoff_hencky(U: wp.mat33, sig: wp.vec3, mu: float, lam: float):
-    """Kirchhoff stress τ = U (2μ ε + λ tr(ε) I) Uᵀ of StVK on the Hencky strain ε = log Σ, Pa."""
-    eps = hencky_strain(sig)
-    tr = eps[0] + eps[1] + eps[2]
-    t = 2.0 * mu * eps + wp.vec3(lam * tr)
-    return U @ wp.diag(t) @ wp.transpose(U)
-
-
-@wp.func
-def von_mises_return(sig: wp.vec3, mu: float, yield_stress: float):
-    """Project singular values onto the von Mises yield surface of the Hencky model.
-
-    Returns (new singular values, plastic multiplier Δγ) packed as vec4; Δγ = 0 inside the surface.
-    """
-    eps = hencky_strain(sig)
-    mean = (eps[0] + eps[1] + eps[2]) / 3.0
-    dev = eps - wp.vec3(mean)
-    norm = wp.length(dev)
-    excess = 2.0 * mu * norm - wp.sqrt(2.0 / 3.0) * yield_stress
-    if excess > 0.0 and norm > 1.0e-12:
-        dgamma = excess / (2.0 * mu)
-        eps_new = dev * (1.0 - dgamma / norm) + wp.vec3(mean)
-        return wp.vec4(wp.exp(eps_new[0]), wp.exp(eps_new[1]), wp.exp(eps_new[2]), dgamma)
-    return wp.vec4(sig[0], sig[1], sig[2], 0.0)
-
-
-@wp.func
-def drucker_prager_return(sig: wp.vec3, mu: float, lam: float, alpha: float):
-    """Cohesionless Drucker–Prager return mapping on the Hencky strain (Klár et al. 2016).
-
-    Returns (new singular values, 1 if the state was projected else 0) as vec4.
-    """
-    eps = hencky_strain(sig)
-    tr = eps[0] + eps[1] + eps[2]
-    if tr >= 0.0:  # extension: a cohesionless material carries no tension, back to the cone's tip
-        return wp.vec4(1.0, 1.0, 1.0, 1.0)
-    dev = eps - wp.vec3(tr / 3.0)
-    norm = wp.length(dev)
-    dgamma = norm + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
-    if dgamma <= 0.0 or norm <= 1.0e-12:
-        return wp.vec4(sig[0], sig[1], sig[2], 0.0)
-    eps_new = eps - dev * (dgamma / norm)
-    return wp.vec4(wp.exp(eps_new[0]), wp.exp(eps_new[1]), wp.exp(eps_new[2]), 1.0)
 
 
 @wp.func
@@ -239,75 +117,6 @@ def displacement_gradient_update(H: wp.mat33, G: wp.mat33):
     return H + (G + G @ H)
 
 
-@wp.func
-def elastic_fixed_corotated(Fn: wp.mat33, q0: wp.quat, mu: float, lam: float):
-    """Purely elastic fixed-corotated law without an SVD: (Kirchhoff stress Pa, rotation quaternion, J)."""
-    q = rotation_part(Fn, q0)
-    R = wp.quat_to_matrix(q)
-    J = wp.determinant(Fn)
-    tau = 2.0 * mu * (Fn - R) @ wp.transpose(Fn) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
-    return tau, q, J
-
-
-@wp.func
-def constitutive_update(law: ClassLaw, Fn: wp.mat33, q0: wp.quat, state: float, mu: float, lam: float,
-                        effect_yield: float):
-    """The class's law on the trial deformation gradient ``Fn``.
-
-    Returns (Kirchhoff stress τ Pa, elastic F after the return mapping, rotation quaternion of the
-    fast path, plastic state, J).  ``effect_yield`` is the plasticity effect's von Mises yield stress.
-    """
-    ys = wp.min(law.yield_stress, effect_yield) * wp.exp(-law.softening * state)
-    if law.elastic == LAW_FIXED_COROTATED and law.plastic == PLASTIC_NONE and ys >= 1.0e30:
-        tau, q, J = elastic_fixed_corotated(Fn, q0, mu, lam)
-        return tau, Fn, q, state, J
-    if law.elastic == LAW_WEAKLY_COMPRESSIBLE:
-        # no tension (p >= 0: a free-surface fluid pulls nothing) and no memory of shear or expansion
-        Jf = wp.clamp(wp.determinant(Fn), MIN_FLUID_J, 1.0)
-        bulk = lam + 2.0 / 3.0 * mu
-        tau_f = wp.identity(n=3, dtype=float) * (bulk * Jf * (Jf - 1.0))
-        return tau_f, wp.identity(n=3, dtype=float) * wp.pow(Jf, 1.0 / 3.0), q0, state, Jf
-    U = wp.mat33()
-    sig = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(Fn, U, sig, V)
-    projected = bool(False)
-    new_state = state
-    mu_e = mu
-    lam_e = lam
-    if law.plastic == PLASTIC_SNOW:
-        clamped = wp.vec3(wp.clamp(sig[0], 1.0 - law.theta_c, 1.0 + law.theta_s),
-                          wp.clamp(sig[1], 1.0 - law.theta_c, 1.0 + law.theta_s),
-                          wp.clamp(sig[2], 1.0 - law.theta_c, 1.0 + law.theta_s))
-        new_state = state * (sig[0] * sig[1] * sig[2]) / (clamped[0] * clamped[1] * clamped[2])
-        sig = clamped
-        projected = True
-        harden = wp.min(wp.exp(law.hardening * (1.0 - new_state)), law.max_hardening)
-        mu_e = mu * harden
-        lam_e = lam * harden
-    elif law.plastic == PLASTIC_DRUCKER_PRAGER:
-        r = drucker_prager_return(sig, mu, lam, law.dp_alpha)
-        if r[3] > 0.0:
-            sig = wp.vec3(r[0], r[1], r[2])
-            projected = True
-    elif ys < 1.0e30:  # von Mises: the class's own yield (metal, plasticine) or the effect on an elastic class
-        r = von_mises_return(sig, mu, ys)
-        if r[3] > 0.0:
-            sig = wp.vec3(r[0], r[1], r[2])
-            new_state = state + wp.sqrt(2.0 / 3.0) * r[3]
-            projected = True
-    Fe = Fn
-    if projected:
-        Fe = U @ wp.diag(sig) @ wp.transpose(V)
-    J = sig[0] * sig[1] * sig[2]
-    tau = wp.mat33(0.0)
-    if law.elastic == LAW_FIXED_COROTATED:
-        tau = kirchhoff_fixed_corotated(Fe, U, sig, V, mu_e, lam_e)
-    else:
-        tau = kirchhoff_hencky(U, sig, mu_e, lam_e)
-    return tau, Fe, q0, new_state, J
-
-
 @wp.func(inline=True)
 def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, H: wp.array(dtype=wp.mat33),
                             rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
@@ -344,6 +153,37 @@ def particle_stress_elastic(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.m
     H[p] = Hn
     rot[p] = q
     return tau
+
+
+@wp.func(inline=True)
+def particle_transfer(p: int, env: int, dt: float, tau: wp.mat33, Cp: wp.mat33, m: float, vol: wp.array(dtype=float),
+                      v: wp.array(dtype=wp.vec3), mu_p: wp.array(dtype=float), lam_p: wp.array(dtype=float),
+                      env_eta: wp.array(dtype=float), xp: wp.vec3, origin: wp.vec3, base: wp.vec3, held: bool,
+                      has_ground: int, ground_z: float, contact_radius: float, contact_area: float,
+                      env_ground: wp.array(dtype=wp.vec3), dx: float, inv_dx: float):
+    """What particle ``p`` sends to its 3×3×3 stencil: the body every P2G kernel shares (only the scatter differs).
+
+    tau: its Kirchhoff stress (Pa); Cp: its APIC affine velocity (1/s); m: its mass (kg); base: the stencil's
+    lower corner (:func:`stencil_base`).  A held particle sends zero velocity; any other gets the ground's contact
+    impulse (:func:`particle_ground_impulse`) first.  Returns (w, cols, a0, jn): the B-spline weights (rows: node
+    offset, columns: axis), and the momentum sent to node (i, j, k), ``weight · (a0 + i cols[0] + j cols[1] +
+    k cols[2])`` (kg·m/s), which is weight · (m v + affine (node − x)) with node − x = ((i, j, k) − fx) dx built up
+    incrementally from the columns of affine · dx; jn: the contact impulse, N·s (0 when none).
+    """
+    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
+    vp = v[p]
+    jn = float(0.0)
+    if held:
+        vp = wp.vec3(0.0)
+    else:
+        jn = particle_ground_impulse(xp, vp, m, lam_p[p] + 2.0 * mu_p[p], env_eta[env], dt, env, has_ground,
+                                     ground_z, contact_radius, contact_area, env_ground)[2]
+        vp = vp + wp.vec3(0.0, 0.0, jn / m)
+    fx = (xp - origin) * inv_dx - base
+    w = bspline_weights(fx)
+    cols = wp.transpose(affine * dx)
+    a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+    return w, cols, a0, jn
 
 
 def _make_p2g(general: bool):
@@ -392,21 +232,9 @@ def _make_p2g(general: bool):
             else:
                 tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
 
-        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
-        vp = v[p]
-        jn = float(0.0)
-        if held:
-            vp = wp.vec3(0.0)
-        else:
-            jn = particle_ground_impulse(xp, vp, m, lam_p[p] + 2.0 * mu_p[p], env_eta[env], dt, env, has_ground,
-                                         ground_z, contact_radius, contact_area, env_ground)[2]
-            vp = vp + wp.vec3(0.0, 0.0, jn / m)
-        fx = (xp - origin) * inv_dx - base
-        w = bspline_weights(fx)
-        # momentum sent to node (i, j, k) is weight * (m v + affine (node - x)); node - x = ((i, j, k) - fx) dx,
-        # so it is a0 + i a_x + j a_y + k a_z with the columns a_* of affine * dx: built up incrementally.
-        cols = wp.transpose(affine * dx)
-        a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+        w, cols, a0, jn = particle_transfer(p, env, dt, tau, Cp, m, vol, v, mu_p, lam_p, env_eta, xp, origin, base,
+                                            held, has_ground, ground_z, contact_radius, contact_area, env_ground, dx,
+                                            inv_dx)
         ib = int(base[0])
         jb = int(base[1])
         kb = int(base[2])

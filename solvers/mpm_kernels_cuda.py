@@ -1,8 +1,9 @@
 """GPU-tuned variants of the MPM substep kernels (a separate Warp module: the CPU never compiles them
 unless asked to).
 
-The physics is :mod:`.mpm_kernels`' (the same ``wp.func`` for the deformation update, the laws, the
-transfers and the tracked-point fit); what differs is how the work is laid out on a GPU:
+The physics is :mod:`.mpm_kernels`' (the same ``wp.func`` for the deformation update, the particle's side of
+P2G (:func:`.mpm_kernels.particle_transfer`), the transfers and the tracked-point fit) and the laws are
+:mod:`.constitutive`'s; what differs is how the work is laid out on a GPU:
 
 * **P2G scatter** (:data:`P2G_KERNELS`):
 
@@ -32,9 +33,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from .mpm_kernels import (HELD_FLAG, ClassLaw, bspline_weights, particle_advect, particle_ground_impulse,
-                          particle_stress_elastic,
-                          particle_stress_general, stencil_base, stencil_inside)
+from .constitutive import ClassLaw
+from .mpm_kernels import (HELD_FLAG, bspline_weights, particle_advect, particle_stress_elastic, particle_stress_general,
+                          particle_transfer, stencil_base, stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -254,19 +255,9 @@ def _make_p2g(general: bool, scatter: str):
             else:
                 tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
 
-        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * Cp
-        vp = v[p]
-        jn = float(0.0)
-        if held:
-            vp = wp.vec3(0.0)
-        else:
-            jn = particle_ground_impulse(xp, vp, m, lam_p[p] + 2.0 * mu_p[p], env_eta[env], dt, env, has_ground,
-                                         ground_z, contact_radius, contact_area, env_ground)[2]
-            vp = vp + wp.vec3(0.0, 0.0, jn / m)
-        fx = (xp - origin) * inv_dx - base
-        w = bspline_weights(fx)
-        cols = wp.transpose(affine * dx)
-        a0 = m * vp - cols[0] * fx[0] - cols[1] * fx[1] - cols[2] * fx[2]
+        w, cols, a0, jn = particle_transfer(p, env, dt, tau, Cp, m, vol, v, mu_p, lam_p, env_eta, xp, origin, base,
+                                            held, has_ground, ground_z, contact_radius, contact_area, env_ground, dx,
+                                            inv_dx)
         for i in range(3):
             ai = a0 + float(i) * cols[0]
             wi = w[i, 0]

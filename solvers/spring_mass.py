@@ -4,12 +4,12 @@ The solid is a network of *anchors* (point masses) joined by springs:
 
 * **Anchors.**  The solid is filled with sample points (:func:`~.sampling.fill_mesh`, or the
   body's own points), thinned by voxel down-sampling and then ordered by farthest-point
-  sampling; the first ``anchors`` points (default :data:`DEFAULT_ANCHORS` = 2048) are the
+  sampling; the first ``anchors`` points (default :data:`.spring_mass_settings.DEFAULT_ANCHORS` = 2048) are the
   anchors.  The order is deterministic — the model's spring head predicts one stiffness per
   anchor in this order.  Each anchor owns the fill points nearest to it (its Voronoi cell):
   its volume ``V_i`` and mass ``m_i = Σ ρ ΔV`` come from them.
 * **Springs.**  Each anchor is joined to its ``neighbours`` nearest anchors (default
-  :data:`DEFAULT_NEIGHBOURS` = 32: in 3D this gives every anchor 30–45 springs, enough for
+  :data:`.spring_mass_settings.DEFAULT_NEIGHBOURS` = 32: in 3D this gives every anchor 30–45 springs, enough for
   the network to resist shear without bending or volume modes of zero energy, while a step
   stays one gather over a few dozen springs).  The directed k-NN lists are merged into one
   undirected spring per pair (Newton's third law; momentum is conserved); a spring's *rank*
@@ -65,9 +65,9 @@ with E_i the volume mean of E over anchor i's cell.  Σ_{s∋i} w_s L_s assumes 
 over all directions; in a thin part (a bar or a leaf a few anchors thick) they lie along the part, and the
 network is stiffer there (a 0.04 × 0.02 m bar 3 anchors thick stretched 10 % too little).  So the sum is
 replaced by the one that fits the anchor's affine stiffness tensor (∝ k_i Σ w L d⊗d⊗d⊗d) to the isotropic
-one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:meth:`AnchorNetwork.fabric_sums`; equal to
+one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:meth:`.spring_mass_network.AnchorNetwork.fabric_sums`; equal to
 Σ w L for evenly spread springs; the bar then stretches within 1 %).  The calibration ``c_E``
-(:data:`STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
+(:data:`.spring_mass_settings.STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
 ``docs/spring_mass.md``.  The network's Poisson ratio is 1/4 whatever ν says (ν is not
@@ -92,8 +92,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, fields
-from typing import Optional
+from dataclasses import fields
 
 import numpy as np
 
@@ -104,417 +103,30 @@ from . import materials as materials_mod
 from .api import Simulation
 from .body import Body
 from .effects import PhysicsTerms
-from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_material
-from .sampling import farthest_point_sampling, fill_mesh, thickness_at, voxel_downsample
+from .material_sampling import MaterialSpec
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA
+from .spring_mass_network import (build_network, softness_weights, stiffness_from_youngs_modulus,
+                                  youngs_modulus_from_stiffness)
+from .spring_mass_settings import DEFAULT_ANCHORS, DEFAULT_SOFTNESS, SpringMassSettings  # noqa: F401 - DEFAULT_SOFTNESS: public
 
-DEFAULT_ANCHORS = 2048
-"""N_a: anchors of the network (the paper's spring head predicts N_a stiffnesses + 1 softness)."""
-DEFAULT_NEIGHBOURS = 32
-"""Springs from every anchor to its 32 nearest anchors (merged into undirected springs)."""
-DEFAULT_FIXED_SPRINGS = 16
-"""Springs of rank < 16 are never weakened by the softness."""
-DEFAULT_SOFTNESS = 0.0
-"""η used when the stiffness comes from a material field (Spring-Gaus's initial value)."""
-DEFAULT_BINDING = 6
-"""Anchors each tracked point / vertex is bound to."""
 SPRING_PARAM_COUNT = DEFAULT_ANCHORS + 1
 """Length of the model's spring-mass vector (k ∈ R^{N_a}, η): 2049."""
 NETWORK_POISSON_RATIO = 0.25
 """Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ)."""
 P_WAVE_PER_E = (1 - NETWORK_POISSON_RATIO) / ((1 + NETWORK_POISSON_RATIO) * (1 - 2 * NETWORK_POISSON_RATIO))
 """M / E = (1 − ν) / ((1 + ν)(1 − 2ν)) of the network's material (ν = 1/4): its P-wave modulus per unit E."""
-AFFINE_STIFFNESS_FACTOR = 12.0
-"""k_i = c_E · 12 E_i V_i / Σ w_s L_s (affine network, see module docstring)."""
 AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
-STIFFNESS_CALIBRATION = 0.94
-"""c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
-ANCHORS_ACROSS_THIN = 3.0
-"""Anchors wanted through the thickness of thin parts (adaptive anchor sampling, :func:`select_anchors`)."""
-MAX_ANCHOR_REFINEMENT = 4.0
-"""Thin parts get anchors at most this many times closer together than the uniform spacing."""
 GPU_LANES_PER_ANCHOR = 32
 """Threads (one warp) that gather an anchor's ~40-60 half-edges on a GPU (settings.lanes_per_anchor)."""
-
-
-# ------------------------------------------------------------------------------------- settings
-@dataclass
-class SpringMassSettings:
-    """Set-up options of the spring-mass solver.
-
-    anchors: N_a, number of anchors (fewer when the solid has fewer fill points).
-    neighbours: springs per anchor before merging (k of the k-NN graph).
-    fixed_springs: ranks below this keep full strength whatever the softness (at most ``neighbours``).
-    softness: η, the global softness (dimensionless real).
-    stiffness: ``None`` (derive k from the material's E) or (N_a,) newtons — explicit per-anchor
-        stiffness, what the model's spring head predicts.
-    binding: anchors per tracked point.
-    fill_per_anchor: fill points per anchor used for masses and cell volumes.
-    max_fill_points: cap on the number of fill points.
-    safety: fraction of the stability limit used as the substep (0 < safety <= 1).
-    substeps: ``None`` (from stability) or a fixed number of substeps per frame interval.
-    max_substeps_per_frame: refuse (UserError) a run whose stability limit needs more substeps
-        per frame interval than this (e.g. a huge ``material_damping`` η: dashpots are explicit).
-    stiffness_calibration: c_E (see module docstring).
-    lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
-        1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`GPU_LANES_PER_ANCHOR` on a GPU,
-        1 on the CPU.
-    """
-
-    anchors: int = DEFAULT_ANCHORS
-    neighbours: int = DEFAULT_NEIGHBOURS
-    fixed_springs: int = DEFAULT_FIXED_SPRINGS
-    softness: float = DEFAULT_SOFTNESS
-    stiffness: Optional[np.ndarray] = None
-    binding: int = DEFAULT_BINDING
-    fill_per_anchor: int = 12
-    max_fill_points: int = 400_000
-    safety: float = 0.7
-    substeps: Optional[int] = None
-    max_substeps_per_frame: int = 200_000
-    stiffness_calibration: float = STIFFNESS_CALIBRATION
-    lanes_per_anchor: Optional[int] = None
-
-    def __post_init__(self):
-        if self.lanes_per_anchor is not None:
-            lanes = self.lanes_per_anchor
-            if not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
-                raise UserError(f"spring-mass setting 'lanes_per_anchor' must be None or a whole number in 1..1024, "
-                                f"got {lanes!r}")
-            self.lanes_per_anchor = int(lanes)
-        for name in ("anchors", "neighbours", "binding", "fill_per_anchor", "max_fill_points", "max_substeps_per_frame"):
-            val = getattr(self, name)
-            if not isinstance(val, (int, np.integer)) or val < 1:
-                raise UserError(f"spring-mass setting '{name}' must be a positive whole number, got {val!r}")
-            setattr(self, name, int(val))
-        if not isinstance(self.fixed_springs, (int, np.integer)) or self.fixed_springs < 0:
-            raise UserError(f"spring-mass setting 'fixed_springs' must be a whole number >= 0, got {self.fixed_springs!r}")
-        self.fixed_springs = min(int(self.fixed_springs), self.neighbours)
-        try:
-            self.softness = float(self.softness)
-        except (TypeError, ValueError):
-            raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}") from None
-        if math.isnan(self.softness) or self.softness == math.inf:
-            raise UserError(f"spring-mass setting 'softness' must be a real number (or -inf), got {self.softness}")
-        if not (0.0 < float(self.safety) <= 1.0):
-            raise UserError(f"spring-mass setting 'safety' must lie in (0, 1], got {self.safety!r}")
-        if self.substeps is not None and (int(self.substeps) != self.substeps or self.substeps < 1):
-            raise UserError(f"spring-mass setting 'substeps' must be None or a positive whole number, got {self.substeps!r}")
-        if not (np.isfinite(self.stiffness_calibration) and self.stiffness_calibration > 0):
-            raise UserError("spring-mass setting 'stiffness_calibration' must be positive")
-        if self.stiffness is not None:
-            k = np.asarray(self.stiffness, dtype=np.float64).reshape(-1)
-            if k.size == 0 or not np.all(np.isfinite(k)) or np.any(k <= 0):
-                raise UserError("explicit spring stiffness vector must be finite and positive (newtons, one per anchor)")
-            self.stiffness = k
-
-    @classmethod
-    def coerce(cls, settings) -> "SpringMassSettings":
-        if settings is None:
-            return cls()
-        if isinstance(settings, cls):
-            return settings
-        if isinstance(settings, dict):
-            known = {f.name for f in fields(cls)}
-            unknown = set(settings) - known
-            if unknown:
-                raise UserError(f"unknown spring-mass setting(s) {sorted(unknown)}; known: {sorted(known)}")
-            return cls(**settings)
-        raise UserError(f"spring-mass settings must be a SpringMassSettings or a dict, got {type(settings).__name__}")
-
-
-# ------------------------------------------------------------------------------------- network
-def softness_weights(ranks: np.ndarray, neighbours: int, fixed_springs: int, softness: float) -> np.ndarray:
-    """Strength factor w ∈ [0, 1] of springs of the given neighbour ranks (0 = nearest).
-
-    ranks: (S,) int; returns (S,) float64 (see the module docstring for the formula).
-    """
-    r = np.asarray(ranks, dtype=np.float64)
-    span = max(neighbours - fixed_springs, 1)
-    if softness == -math.inf:
-        return np.ones_like(r)
-    base_log = np.logaddexp(0.0, softness)  # softplus(η) = log b
-    t = np.clip((r - fixed_springs) / span, 0.0, None)
-    w = np.clip(2.0 - np.exp(base_log * t), 0.0, 1.0)
-    return np.where(r < fixed_springs, 1.0, w)
-
-
-@dataclass
-class AnchorNetwork:
-    """The anchors and springs of one solid (everything that does not depend on the effects).
-
-    fill_points: (F, 3) m, samples of the solid; fill_volume: (F,) m³ each; fill_cell: (F,) anchor index.
-    anchors: (N, 3) m rest positions in FPS order; volume: (N,) m³; mass: (N,) kg;
-    E: (N,) Pa (cell mean); material: (N,) class ids; pinned: (N,) bool (clamp or stationary class).
-    springs: (S, 2) anchor indices (i < j); rank: (S,) int; rest_length: (S,) m.
-    """
-
-    fill_points: np.ndarray
-    fill_volume: np.ndarray
-    fill_cell: np.ndarray
-    anchors: np.ndarray
-    volume: np.ndarray
-    mass: np.ndarray
-    E: np.ndarray
-    material: np.ndarray
-    pinned: np.ndarray
-    springs: np.ndarray
-    rank: np.ndarray
-    rest_length: np.ndarray
-    warnings: list
-
-    @property
-    def count(self) -> int:
-        return int(len(self.anchors))
-
-    def fabric_sums(self, weights: np.ndarray) -> np.ndarray:
-        """Per anchor (Σ w L)² / ‖Σ w L d⊗d⊗d⊗d‖² · (1/5), (N,) m: the Σ w L that the least-squares fit of the
-        network's affine stiffness tensor to an isotropic one divides by (module docstring).  Equal to Σ w L
-        when an anchor's springs spread evenly over all directions; larger where they lie in a thin part's plane
-        or along its axis (the network is stiffer along those directions than the trace says)."""
-        n = self.count
-        d = self.anchors[self.springs[:, 1]] - self.anchors[self.springs[:, 0]]
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        wl = weights * self.rest_length
-        quartic = np.einsum("si,sj,sk,sl->sijkl", d, d, d, d).reshape(len(d), 81) * wl[:, None]
-        A = np.zeros((n, 81))
-        np.add.at(A, self.springs[:, 0], quartic)
-        np.add.at(A, self.springs[:, 1], quartic)
-        swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
-        return 5.0 * np.einsum("ij,ij->i", A, A) / np.maximum(swl, 1e-300)
-
-    def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""
-        n = self.count
-        wl = weights * self.rest_length
-        swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
-        sl = (np.bincount(self.springs[:, 0], self.rest_length, n)
-              + np.bincount(self.springs[:, 1], self.rest_length, n))
-        return swl, sl
-
-
-def _solid_volume(body: Body, fallback_pts: np.ndarray) -> float:
-    if body.mesh is not None and getattr(body.mesh, "is_watertight", False) and body.mesh.volume > 0:
-        return float(body.mesh.volume)
-    if body.mesh is not None:
-        try:
-            return float(body.mesh.convex_hull.volume)
-        except Exception:  # degenerate hull
-            pass
-    ext = np.ptp(fallback_pts, axis=0)
-    return float(np.prod(np.maximum(ext, 1e-9)))
-
-
-def fill_solid(body: Body, target_points: int, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points of the solid and the volume each stands for.
-
-    Returns (F, 3) m and (F,) m³ (summing to the mesh volume for a closed mesh, or to
-    ``point_volume`` × count for a point body).
-    """
-    target_points = int(min(max(target_points, 64), max_points))
-    if body.mesh is None:
-        pts = np.asarray(body.points, dtype=np.float64)
-        if body.point_volume is not None:
-            vol = float(body.point_volume)
-            if not (np.isfinite(vol) and vol > 0):
-                raise UserError(f"the body's point_volume must be a positive volume in m³, got {body.point_volume!r}")
-        elif len(pts) == 1:
-            raise UserError("a body of a single point needs point_volume (m³)")
-        else:
-            from scipy.spatial import cKDTree
-
-            d, _ = cKDTree(pts).query(pts, k=2)
-            spacing = float(np.median(d[:, 1]))
-            if spacing <= 0:
-                raise UserError("the body's points coincide; give distinct points or a mesh")
-            vol = spacing ** 3
-        return pts, np.full(len(pts), vol)
-    volume = _solid_volume(body, body.rest_points)
-    spacing = (volume / target_points) ** (1.0 / 3.0)
-    pts = fill_mesh(body.mesh, spacing)
-    # a thin solid can come back nearly empty at the first spacing: refine until it has enough points
-    for _ in range(3):
-        if len(pts) >= 0.25 * target_points:
-            break
-        spacing *= 0.5
-        pts = fill_mesh(body.mesh, spacing, max_points=max(8 * max_points, 20_000_000))
-    if len(pts) > max_points:
-        pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
-    return pts, np.full(len(pts), volume / len(pts))
-
-
-def select_anchors(points: np.ndarray, count: int, pinned: np.ndarray | None = None,
-                   point_volume: float | None = None, thickness: np.ndarray | None = None,
-                   across: float = ANCHORS_ACROSS_THIN) -> np.ndarray:
-    """Indices into ``points`` of ``count`` anchors: voxel down-sampling, then farthest-point order.
-
-    points: (F, 3) m fill points; pinned: (F,) bool, clamped points; point_volume: m³ each; thickness: (F,) m,
-    the local thickness of the part each point belongs to (:func:`~.sampling.thickness_at`).
-    With ``thickness``, the sampling is adaptive: where a part is thinner than ``across`` uniform anchor
-    spacings, the wanted spacing shrinks in proportion (to at most :data:`MAX_ANCHOR_REFINEMENT` times finer), so
-    a trunk, a leaf or a slender bar gets about ``across`` anchors through its thickness when the count allows
-    (a bending part of one or two anchors' thickness bends far too easily or not at all).
-    The clamped region gets anchors only where it meets free material (within three anchor spacings of it; the
-    rest of a clamp holds nothing), in proportion to that volume (at least 4 when it has them).
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    n = len(pts)
-    count = min(int(count), n)
-    vol = float(point_volume) if point_volume else None
-
-    def thin(idx: np.ndarray, k: int) -> np.ndarray:
-        if k <= 0 or len(idx) == 0:
-            return np.zeros(0, dtype=np.int64)
-        sub = pts[idx]
-        ext = np.ptp(sub, axis=0)
-        occupied = len(idx) * vol if vol else max(float(np.prod(np.maximum(ext, 1e-12))), 1e-30)
-        uniform = (occupied / k) ** (1.0 / 3.0)
-        if len(idx) > 8 * k:
-            voxel = 0.5 * uniform if thickness is not None else (occupied / (3.0 * k)) ** (1.0 / 3.0)
-            cand = voxel_downsample(sub, voxel)
-            while len(cand) < 2 * k:  # the volume over-estimates sparse clouds: shrink until enough
-                voxel *= 0.7
-                cand = voxel_downsample(sub, voxel)
-            idx = idx[cand]
-            sub = pts[idx]
-        spacing = None
-        if thickness is not None:
-            spacing = np.clip(thickness[idx] / (across * uniform), 1.0 / MAX_ANCHOR_REFINEMENT, 1.0)
-        return idx[farthest_point_sampling(sub, k, spacing=spacing)]
-
-    if pinned is None or not np.any(pinned) or np.all(pinned):
-        return thin(np.arange(n), count)
-    free_idx = np.flatnonzero(~pinned)
-    pin_idx = np.flatnonzero(pinned)
-    from scipy.spatial import cKDTree
-
-    uniform = (len(free_idx) * (vol or 1.0) / max(count, 1)) ** (1.0 / 3.0) if vol else None
-    if uniform:
-        near, _ = cKDTree(pts[free_idx]).query(pts[pin_idx], distance_upper_bound=3.0 * uniform)
-        pin_idx = pin_idx[np.isfinite(near)] if np.isfinite(near).sum() >= 4 else pin_idx
-    n_pin = int(round(count * len(pin_idx) / (len(pin_idx) + len(free_idx))))
-    n_pin = min(max(n_pin, min(4, len(pin_idx))), len(pin_idx), count - 1)
-    return np.concatenate([thin(pin_idx, n_pin), thin(free_idx, count - n_pin)])
-
-
-def _springs_inside(anchors: np.ndarray, springs: np.ndarray, fill: np.ndarray, fill_spacing: float) -> np.ndarray:
-    """(S,) bool: springs whose segment stays inside the solid - points at ¼, ½ and ¾ of it within one fill spacing
-    of a fill point.  A spring through the air between two parts (two leaves, a trunk and the pot's rim) would
-    join what the solid does not."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(fill)
-    a, b = anchors[springs[:, 0]], anchors[springs[:, 1]]
-    ok = np.ones(len(springs), dtype=bool)
-    for t in (0.25, 0.5, 0.75):
-        d, _ = tree.query(a + t * (b - a), distance_upper_bound=fill_spacing)
-        ok &= np.isfinite(d)
-    return ok
-
-
-def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None = None,
-                  settings: SpringMassSettings | None = None) -> AnchorNetwork:
-    """Anchors, masses, cell volumes and springs of ``body`` (see the module docstring)."""
-    from scipy.spatial import cKDTree
-
-    settings = SpringMassSettings.coerce(settings)
-    warnings: list[str] = []
-    fill, fvol = fill_solid(body, settings.anchors * settings.fill_per_anchor, settings.max_fill_points)
-    mat = sample_material(material, fill)
-    simulated = np.array([materials_mod.get(int(c)).simulated for c in range(materials_mod.NUM_CLASSES)])
-    keep = simulated[mat.material]
-    if not np.any(keep):
-        raise UserError("the material field marks the whole solid as background (not simulated)")
-    if not np.all(keep):
-        warnings.append(f"{int((~keep).sum())} of {len(keep)} fill points are background material and carry no mass")
-        fill, fvol = fill[keep], fvol[keep]
-        mat = type(mat)(mat.E[keep], mat.nu[keep], mat.density[keep], mat.material[keep])
-    held = np.array([materials_mod.get(int(c)).held_fixed for c in range(materials_mod.NUM_CLASSES)])
-    pinned_fill = held[mat.material]
-    if scenario is not None:
-        pinned_fill = pinned_fill | scenario.pinned_mask(fill)
-    if len(fill) < 2:
-        raise UserError("the solid has fewer than 2 sample points; a spring-mass network needs at least 2 anchors")
-    fill_spacing = float(np.mean(fvol)) ** (1.0 / 3.0)
-    thickness = thickness_at(fill, fill_spacing) if body.mesh is not None else None
-    a_idx = select_anchors(fill, settings.anchors, pinned_fill, point_volume=float(np.mean(fvol)), thickness=thickness)
-    anchors = fill[a_idx]
-    n = len(anchors)
-    if n < settings.anchors:
-        warnings.append(f"only {n} anchors could be placed (asked for {settings.anchors})")
-    tree = cKDTree(anchors)
-    _, cell = tree.query(fill)
-    volume = np.bincount(cell, fvol, n)
-    mass = np.bincount(cell, fvol * mat.density, n)
-    E_cell = np.bincount(cell, fvol * mat.E, n) / np.maximum(volume, 1e-300)
-    # an anchor whose cell is empty (cannot happen for anchors drawn from the fill points, kept safe)
-    empty = volume <= 0
-    if np.any(empty):
-        mean_v = float(volume[~empty].mean())
-        volume[empty] = mean_v
-        mass[empty] = mean_v * float(np.mean(mat.density))
-        E_cell[empty] = float(np.mean(mat.E))
-    a_mat = mat.material[a_idx]
-    pinned = pinned_fill[a_idx]
-    # springs: directed k-NN merged into undirected pairs with the lower rank
-    k = min(settings.neighbours, n - 1)
-    _, nn = tree.query(anchors, k=k + 1)
-    nn = np.asarray(nn).reshape(n, k + 1)
-    src = np.repeat(np.arange(n), k)
-    dst = nn[:, 1:].reshape(-1)
-    rank = np.tile(np.arange(k), n)
-    ok = dst != src  # duplicates of a point can return itself later in the list
-    src, dst, rank = src[ok], dst[ok], rank[ok]
-    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
-    order = np.lexsort((rank, hi, lo))
-    lo, hi, rank = lo[order], hi[order], rank[order]
-    first = np.ones(len(lo), dtype=bool)
-    first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
-    springs = np.stack([lo[first], hi[first]], axis=1).astype(np.int64)
-    rank = rank[first].astype(np.int64)
-    if body.mesh is not None:  # no springs through the air between parts; every anchor keeps its nearest three
-        inside = _springs_inside(anchors, springs, fill, fill_spacing) | (rank < 3)
-        if not np.all(inside):
-            warnings.append(f"{int((~inside).sum())} of {len(springs)} springs would cross empty space and were left out")
-        springs, rank = springs[inside], rank[inside]
-    rest = np.linalg.norm(anchors[springs[:, 1]] - anchors[springs[:, 0]], axis=1)
-    if np.any(rest <= 0):
-        raise UserError("two anchors coincide (duplicate points in the body); remove duplicate points")
-    return AnchorNetwork(fill, fvol, cell, anchors, volume, mass, E_cell, a_mat, pinned, springs, rank, rest, warnings)
-
-
-def anchor_positions(body: Body, anchors: int = DEFAULT_ANCHORS, scenario: Scenario | None = None) -> np.ndarray:
-    """(N_a, 3) m rest positions of the anchors in the order the spring head's stiffnesses refer to.
-
-    The anchors depend on the geometry (and the clamp), not on the material.
-    """
-    mat = HomogeneousMaterial(1e5, 0.3, 1000.0)
-    return build_network(body, mat, scenario, SpringMassSettings(anchors=anchors)).anchors
-
-
-def stiffness_from_youngs_modulus(network: AnchorNetwork, E: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
-    """Per-anchor stiffness k (N_a,) newtons that makes the network's modulus E (N_a,) Pa (module docstring)."""
-    w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl = network.fabric_sums(w)
-    if np.any(swl <= 0):
-        raise UserError("the softness weakens every spring of some anchor to zero; lower the softness η")
-    return settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * np.asarray(E, np.float64) * network.volume / swl
-
-
-def youngs_modulus_from_stiffness(network: AnchorNetwork, k: np.ndarray, settings: SpringMassSettings) -> np.ndarray:
-    """Inverse of :func:`stiffness_from_youngs_modulus`: the modulus (N_a,) Pa a stiffness vector stands for."""
-    w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
-    swl = network.fabric_sums(w)
-    return np.asarray(k, np.float64) * swl / (settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * network.volume)
 
 
 # ------------------------------------------------------------------------------------- simulation
 class SpringMassSimulation(Simulation):
     """A prepared spring-mass simulation (see the module docstring).
 
-    Public attributes (numpy, SI): ``network`` (:class:`AnchorNetwork`), ``stiffness`` (N,) N,
+    Public attributes (numpy, SI): ``network`` (:class:`.spring_mass_network.AnchorNetwork`), ``stiffness`` (N,) N,
     ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
     ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping``, ``youngs_modulus`` (N,) Pa the
     stiffness stands for, ``inv_mass`` (N,) (0 = clamped), ``contact_offset`` m (anchors touch the
@@ -862,7 +474,7 @@ def prepare(body: Body, material: MaterialSpec, scenario: Scenario, frame_times,
         raise UserError(f"expected a Body, got {type(body).__name__}")
     if not isinstance(scenario, Scenario):
         raise UserError(f"expected a Scenario, got {type(scenario).__name__}")
-    settings = SpringMassSettings.coerce(settings)
+    settings = SpringMassSettings.from_any(settings)
     return SpringMassSimulation(body, material, scenario, frame_times, device, settings, progress)
 
 
@@ -873,7 +485,7 @@ def prepare_with_parameters(body: Body, stiffness: np.ndarray, softness: float, 
 
     ``material`` gives the density (masses) and class; its E is not used.
     """
-    settings = SpringMassSettings.coerce(settings)
+    settings = SpringMassSettings.from_any(settings)
     k = np.asarray(stiffness, dtype=np.float64).reshape(-1)
     fields_ = {f.name: getattr(settings, f.name) for f in fields(SpringMassSettings)}
     fields_.update(stiffness=k, softness=softness, anchors=len(k))

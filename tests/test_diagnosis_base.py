@@ -13,7 +13,7 @@ import pytest
 from unipixie.core.diagnosis import contact_fit, resolution
 from unipixie.solvers.lbs import LBSSettings
 from unipixie.solvers.mpm import MPMSettings
-from unipixie.solvers.spring_mass import SpringMassSettings
+from unipixie.solvers.spring_mass_settings import SpringMassSettings
 
 
 def _measurement(lowest: float, ground=0.0):

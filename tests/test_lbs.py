@@ -9,7 +9,7 @@ import trimesh
 from unipixie.core.errors import CancelledError, UserError
 from unipixie.core.progress import Progress
 from unipixie.solvers import effects as fx
-from unipixie.solvers import lbs, lbs_fit, skinning
+from unipixie.solvers import lbs, lbs_fit, lbs_terms, skinning
 from unipixie.solvers.body import Body
 from unipixie.solvers.material_sampling import HomogeneousMaterial
 from unipixie.solvers.scenario import Scenario
@@ -104,8 +104,8 @@ def test_reduced_elastic_terms_are_consistent():
     mu = np.stack([np.full(C, 4e4), np.full(C, 8e4)])
     lam = 1.5 * mu
     yield_stress = np.stack([np.full(C, 1e301), np.full(C, 2e3)])
-    cpu_path = lbs._ElasticTerms(sim, mu, lam, yield_stress, max_rows=8, profile=False, staged=False)
-    gpu_path = lbs._ElasticTerms(sim, mu, lam, yield_stress, max_rows=8, profile=False, staged=True)
+    cpu_path = lbs_terms.ElasticTerms(sim, mu, lam, yield_stress, max_rows=8, profile=False, staged=False)
+    gpu_path = lbs_terms.ElasticTerms(sim, mu, lam, yield_stress, max_rows=8, profile=False, staged=True)
     assert cpu_path.symmetric_reduction
     gpu_path.symmetric_reduction = False
     # a 5 % uniform stretch (the constant handle's linear part) plus a perturbation of ~1 % strain: there
@@ -130,7 +130,7 @@ def test_reduced_elastic_terms_are_consistent():
     np.testing.assert_allclose(hess, hess.transpose(0, 2, 1), atol=1e-12 * np.abs(hess).max())
     np.testing.assert_allclose(e8, np.tile(energy[::-1], 4), rtol=1e-12)
     np.testing.assert_allclose(g8, np.concatenate([grad[::-1]] * 4), atol=1e-12 * np.abs(grad).max())
-    ev = lbs._ElasticTerms(sim, mu, lam, None, max_rows=8, profile=False)    # no plastic flow yet
+    ev = lbs_terms.ElasticTerms(sim, mu, lam, None, max_rows=8, profile=False)    # no plastic flow yet
     ev.set_viscosity(np.array([0.0, 50.0]))
     ev.evaluate(Zs, np.arange(2), hessian=True, Z_start=np.zeros((2, 3, nA)))
     h = 1e-7
@@ -153,7 +153,7 @@ def test_host_cholesky_solves_and_shifts_singular_systems():
     spd = A @ A.T + 6 * np.eye(6)
     singular = np.diag([2.0, 0.0, 1.0, 1.0, 3.0, 1.0])
     b = rng.standard_normal((2, 6))
-    x = lbs._Factor(np.stack([spd, singular])).solve(b)
+    x = lbs_terms.CholeskyFactors(np.stack([spd, singular])).solve(b)
     np.testing.assert_allclose(spd @ x[0], b[0], atol=1e-10)
     np.testing.assert_allclose(x[1], b[1] / (np.diag(singular) + 3e-8), rtol=1e-9)
 

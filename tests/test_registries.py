@@ -46,6 +46,47 @@ def test_effect_parse_and_roundtrip():
     assert r.values["region"]["points"].tolist() == [0, 1, 2, 5]
 
 
+@pytest.mark.parametrize("spec", [
+    "linear_drag:c=0.333333", "quadratic_drag:k=0.3", "wind:acceleration=0,0.8,-0.1", "ground_friction:mu=0.4",
+    "stiffness_region:factor=3,box=0,0,0,0.1,0.1,0.05", "stiffness_region:factor=0.3,points=0+1+2+5",
+])
+def test_effect_to_spec_is_the_inverse_of_parse(spec):
+    e = fx.parse(spec)
+    assert e.to_spec() == spec and fx.parse(e.to_spec()) == e
+    # the panel writes its fields' values through the same formatter
+    assert type(e).spec_of({k: v for k, v in e.values.items()}) == spec
+
+
+def test_every_effect_default_round_trips_through_its_spec():
+    for name, cls in fx.EFFECTS.items():
+        if all(p.fittable for p in cls.params):
+            e = fx.make(name)
+            assert fx.parse(e.to_spec()) == e, name
+
+
+def test_solver_registry_names_every_solver_once():
+    from dataclasses import fields
+
+    from unipixie.solvers import api, registry
+
+    assert registry.SOLVER_NAMES == ("mpm", "lbs", "spring_mass")  # the model's head order
+    for name, solver in registry.SOLVERS.items():
+        assert solver.name == name and solver.label and solver.description
+        assert isinstance(solver.defaults(), solver.settings)
+        assert solver.settings.from_any(None) == solver.defaults()
+        first = fields(solver.settings)[0].name
+        assert solver.settings.from_any({first: getattr(solver.defaults(), first)}) == solver.defaults()
+        with pytest.raises(UserError, match=f"unknown {solver.settings.solver_words} setting"):
+            solver.settings.from_any({"no_such_setting": 1})
+        with pytest.raises(UserError, match="must be a dict"):
+            solver.settings.from_any(3)
+    assert api.canonical_solver(" Spring-Mass ") == "spring_mass"
+    for effect in fx.EFFECTS.values():
+        assert set(effect.solvers) <= set(registry.SOLVERS)
+    with pytest.raises(UserError, match="unknown solver"):
+        api.canonical_solver("fem")
+
+
 @pytest.mark.parametrize("spec, message", [
     ("gravityy:x=1", "unknown effect"),
     ("linear_drag:c=-1", "outside"),

@@ -13,6 +13,7 @@ from unipixie.core.progress import Progress
 from unipixie.core.types import GridGeometry, MaterialField
 from unipixie.solvers import effects as fx
 from unipixie.solvers import spring_mass as sm
+from unipixie.solvers import spring_mass_network as network
 from unipixie.solvers.api import simulate
 from unipixie.solvers.body import Body
 from unipixie.solvers.material_sampling import HomogeneousMaterial
@@ -57,13 +58,13 @@ def test_softness_weights_follow_rank():
     """Ranks below fixed_springs keep 1; beyond, w = clip(2 − b^t, 0, 1) with b = e^softplus(η) falls with rank
     and with η; η = −inf leaves every spring at full strength."""
     ranks = np.arange(32)
-    w0 = sm.softness_weights(ranks, 32, 16, 0.0)
+    w0 = network.softness_weights(ranks, 32, 16, 0.0)
     assert np.all(w0[:16] == 1.0)
     assert np.all(np.diff(w0[16:]) < 0)
     # t = (r - 16)/16 and b = 2 for η = 0: w(24) = 2 - 2**0.5
     assert w0[24] == pytest.approx(2 - 2 ** 0.5, abs=1e-12)
-    assert np.all(sm.softness_weights(ranks, 32, 16, 2.0)[17:] < w0[17:])
-    assert np.all(sm.softness_weights(ranks, 32, 16, -math.inf) == 1.0)
+    assert np.all(network.softness_weights(ranks, 32, 16, 2.0)[17:] < w0[17:])
+    assert np.all(network.softness_weights(ranks, 32, 16, -math.inf) == 1.0)
 
 
 # ------------------------------------------------------------------------------------- physics
@@ -293,8 +294,8 @@ def test_explicit_parameters_match_the_material_mapping():
     sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 120})
     k = sim.stiffness
     assert k.shape == (sim.network.count,) and np.all(k > 0)
-    np.testing.assert_allclose(sm.youngs_modulus_from_stiffness(sim.network, k, sim.settings), 1e5, rtol=1e-9)
-    np.testing.assert_allclose(sm.anchor_positions(body, 120, sc), sim.network.anchors)
+    np.testing.assert_allclose(network.youngs_modulus_from_stiffness(sim.network, k, sim.settings), 1e5, rtol=1e-9)
+    np.testing.assert_allclose(network.anchor_positions(body, 120, sc), sim.network.anchors)
     sim2 = sm.prepare_with_parameters(body, k, sm.DEFAULT_SOFTNESS, JELLY, sc, t, settings={"anchors": 120})
     np.testing.assert_allclose(sim2.run([]).positions, sim.run([]).positions, atol=1e-6)
     sim4 = sm.prepare_with_parameters(body, 4 * k, sm.DEFAULT_SOFTNESS, JELLY, sc, t, settings={"anchors": 120})

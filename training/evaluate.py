@@ -49,6 +49,7 @@ import numpy as np
 from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
 from ..core import annotation as ann_mod
+from ..core.model.config import HEADS
 from .oracle import REFERENCES, OracleSettings, oracle_predictions
 
 REPORT_FORMAT = "unipixie.evaluation/1"
@@ -228,7 +229,7 @@ class Methods:
         mean = ["unipixie_mean"] if self.model and self.settings.mean_prediction else []
         return (["unipixie"] if self.model else []) + mean + [b.name for b in self.baselines]
 
-    def predict_all(self, grid, alphas, heads=("mpm", "lbs", "spring_mass")) -> dict:
+    def predict_all(self, grid, alphas, heads=HEADS) -> dict:
         """method -> (arrays for the predictions file, native prediction object), runtime included."""
         import torch
 

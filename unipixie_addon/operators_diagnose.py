@@ -282,7 +282,6 @@ class UNIPIXIE_OT_add_effect(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        from ..core.diagnosis.diagnose import effect_spec
         from ..core.diagnosis.report import load_report
 
         s = _settings(context)
@@ -296,7 +295,7 @@ class UNIPIXIE_OT_add_effect(bpy.types.Operator):
             cand = next((c for c in doc["candidates"] if c["effect"] == want), None)
             if cand is None:
                 raise UserError(f"{want!r} was not fitted in the last diagnosis")
-            spec = effect_spec(_effects.make(want, **cand["params"]))
+            spec = _effects.make(want, **cand["params"]).to_spec()
         except UserError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -17,12 +17,9 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
 from ..core import bake as _bake
 from ..solvers import effects as _effects
 from ..solvers import materials as _materials
+from ..solvers import registry as _solvers
 
-SOLVER_ITEMS = [
-    ("mpm", "MPM", "Material Point Method: large deformation, contact, plasticity"),
-    ("lbs", "LBS", "Reduced-order linear blend skinning: fast elastic motion"),
-    ("spring_mass", "Spring-mass", "Anchors joined by springs: fast, approximate"),
-]
+SOLVER_ITEMS = [(s.name, s.label, s.description) for s in _solvers.SOLVERS.values()]
 DEVICE_ITEMS = [("cpu", "CPU", "Run on the CPU"), ("cuda", "CUDA", "Run on the first NVIDIA GPU")]
 BAKE_MATERIAL_SOURCE_ITEMS = [(k, *_bake.MATERIAL_SOURCE_LABELS[k]) for k in _bake.MATERIAL_SOURCES]
 BAKE_OUTPUT_ITEMS = [(k, *_bake.OUTPUT_LABELS[k]) for k in _bake.OUTPUT_MODES]
@@ -58,14 +55,6 @@ def _representable(cls) -> bool:
     return all(p.fittable and p.size in (1, 3) for p in cls.params)
 
 
-def _effect_spec(name: str, group) -> str:
-    parts = []
-    for p in EFFECT_PANEL_PARAMS[name]:
-        v = getattr(group, p.name)
-        parts.append(f"{p.name}=" + (",".join(f"{float(x):g}" for x in v) if p.size > 1 else f"{float(v):g}"))
-    return name + (":" + ",".join(parts) if parts else "")
-
-
 def _text_from_effects(settings) -> None:
     """Write ``bake_effects`` from the effect switches (keeping effects the switches cannot express)."""
     if _SYNCING[0]:
@@ -74,8 +63,11 @@ def _text_from_effects(settings) -> None:
     for spec in (x.strip() for x in settings.bake_effects.split(";")):
         if spec and spec.partition(":")[0].strip() not in EFFECT_PANEL_PARAMS:
             keep.append(spec)
-    specs = [_effect_spec(name, getattr(settings.effects, name)) for name in EFFECT_PANEL_PARAMS
-             if getattr(settings.effects, name).use]
+    specs = []
+    for name, params in EFFECT_PANEL_PARAMS.items():
+        group = getattr(settings.effects, name)
+        if group.use:
+            specs.append(_effects.get(name).spec_of({p.name: getattr(group, p.name) for p in params}))
     _SYNCING[0] = True
     try:
         settings.bake_effects = "; ".join(specs + keep)

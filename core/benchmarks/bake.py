@@ -14,15 +14,16 @@ from __future__ import annotations
 import statistics
 import time
 
+from ...solvers.registry import SOLVER_NAMES
+
 HELP = "bake time per solver for a 10k-vertex mesh × 250 frames: simulation vs keyframe writing"
-SOLVERS = ("mpm", "lbs", "spring_mass")
 
 
 def add_arguments(p):
     from ..commands import _common
 
     p.add_argument("--device", type=_common.device, default="cpu", help="Warp device for the solvers (cpu, cuda)")
-    p.add_argument("--solvers", default=",".join(SOLVERS), help="comma-separated solvers (default all three)")
+    p.add_argument("--solvers", default=",".join(SOLVER_NAMES), help="comma-separated solvers (default all)")
     p.add_argument("--frames", type=_common.positive_int, default=250, help="frames to bake (default 250)")
     p.add_argument("--subdivisions", type=_common.positive_int, default=5,
                    help="icosphere subdivisions: 5 = 10,242 vertices (default)")
@@ -53,7 +54,7 @@ def _subject(subdivisions: int):
 
 def run(args) -> list[dict]:
     from .. import bake as core_bake
-    from ...solvers.api import canonical_solver
+    from ...solvers.registry import canonical_solver
     from ...solvers.scenario import Scenario
     from ...solvers.warp_runtime import device_description, resolve_device
 

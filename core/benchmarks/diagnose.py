@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 
+from ...solvers.registry import SOLVER_NAMES
+
 HELP = "time a full diagnosis (baseline + every effect fitted + one addition) of a 1 s, 100-frame, ~250-point measurement"
 
 
@@ -19,9 +21,9 @@ def add_arguments(p):
     from ..commands import _common
 
     p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--solver", default="spring_mass", choices=("mpm", "lbs", "spring_mass"),
+    p.add_argument("--solver", default="spring_mass", choices=SOLVER_NAMES,
                    help="solver of the diagnosis (default spring_mass)")
-    p.add_argument("--gen-solver", default="mpm", choices=("mpm", "lbs", "spring_mass"),
+    p.add_argument("--gen-solver", default="mpm", choices=SOLVER_NAMES,
                    help="solver that makes the measurement (default mpm)")
     p.add_argument("--effect", default="quadratic_drag:k=0.3", help="the hidden effect")
     p.add_argument("--runs", type=_common.positive_int, default=1, help="timed runs (median reported)")

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic_io import save_figure, save_npz
+from ...solvers.registry import SOLVER_NAMES
 
 HELP = "solver fidelity: refinement study on canonical scenes (cantilever, drop, slide, drag) and cross-solver agreement"
 
@@ -62,7 +63,7 @@ LADDERS = {
 def add_arguments(p):
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--scenes", default=",".join(LADDERS), help=f"comma-separated scenes (default: all: {','.join(LADDERS)})")
-    p.add_argument("--solvers", default="mpm,spring_mass,lbs", help="comma-separated solvers (default: all three)")
+    p.add_argument("--solvers", default=",".join(SOLVER_NAMES), help="comma-separated solvers (default: all)")
     p.add_argument("--ladder", choices=("fast", "full"), default="fast",
                    help="fast: the resolutions a 2-core CPU affords; full: also the fine levels (a GPU)")
     p.add_argument("--referee", metavar="JSON", help="reference values from the independent referee "
@@ -103,7 +104,7 @@ def trajectory_rmse(a: np.ndarray, b: np.ndarray) -> float:
 
 def run(args) -> list[dict]:
     from ...core.errors import UserError
-    from ...solvers.api import canonical_solver
+    from ...solvers.registry import canonical_solver
     from ...solvers.warp_runtime import device_description, resolve_device
     from . import _scenes
 
@@ -180,7 +181,7 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
     for r in results:
         if "reference" in r and "scene" in r and "solver" in r:
             by_scene.setdefault(r["scene"], []).append(r)
-    colours = {"mpm": "tab:blue", "spring_mass": "tab:orange", "lbs": "tab:green"}
+    colours = dict(zip(SOLVER_NAMES, ("tab:blue", "tab:green", "tab:orange")))
     for scene, rows in by_scene.items():
         metrics = sorted({r["metric"] for r in rows})
         fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 4.0), squeeze=False)
@@ -189,7 +190,7 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
             ref = sub[0]["reference"]
             ax.axhspan(ref * (1 - TOLERANCE), ref * (1 + TOLERANCE), color="0.85", label="reference ± 5 %")
             ax.axhline(ref, color="k", lw=1)
-            for solver in ("mpm", "spring_mass", "lbs"):
+            for solver in SOLVER_NAMES:
                 pts = [r for r in sub if r["solver"] == solver]
                 if not pts:
                     continue

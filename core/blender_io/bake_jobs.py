@@ -8,6 +8,7 @@ from typing import Optional, Sequence
 
 import bpy
 
+from ...solvers.registry import SOLVER_NAMES
 from .. import bake as core_bake
 from ..bake import BakeJob
 from ..errors import UserError
@@ -108,7 +109,7 @@ def _prepare_model_materials(planned, auto: bool, log) -> dict:
     fingerprints = {}
     for name, w in wanted.items():
         checkpoint, seed, device = w["key"]
-        heads = tuple(h for h in ("mpm", "lbs", "spring_mass") if h in w["heads"])
+        heads = tuple(h for h in SOLVER_NAMES if h in w["heads"])
         settings = PipelineSettings(checkpoint=checkpoint, seed=seed, device=device, heads=heads,
                                     alphas=tuple(sorted(w["alphas"]))).with_model_recipe()
         log(f"model material of '{name}' (α {', '.join(f'{a:g}' for a in sorted(w['alphas']))}):")

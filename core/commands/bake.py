@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ...solvers.registry import SOLVER_NAMES
 from . import _common
 
 NAME = "bake"
@@ -62,7 +63,7 @@ def add_arguments(p):
     p.add_argument("--out", metavar="OUT.blend",
                    help="where to save the baked scene; may contain {object}, {alpha}, {frames}, {start}, {end}, "
                         "{solver}, {scene}, {job}. Mesh Cache files go to OUT_unipixie/ next to it")
-    p.add_argument("--solver", default="mpm", help="mpm, lbs or spring_mass (default mpm)")
+    p.add_argument("--solver", default="mpm", help=f"{', '.join(SOLVER_NAMES)} (default mpm)")
     p.add_argument("--alpha", type=_alphas, metavar="A[,B,...]",
                    help="soft-to-stiff control in [0, 1] for the model's material (a list bakes a batch)")
     p.add_argument("--frames", metavar="START-END[,START-END]",

@@ -12,6 +12,7 @@ report is written (:mod:`unipixie.core.diagnosis.demo`).
 
 from __future__ import annotations
 
+from ...solvers.registry import SOLVER_NAMES
 from ._common import device as device_type
 
 NAME = "demo"
@@ -38,7 +39,7 @@ def add_arguments(p):
                    help="cpu (default) or cuda: where features, the model and the solvers run")
     p.add_argument("--diagnose", action="store_true",
                    help="instead: diagnose a built-in measurement with a hidden effect, printing every step")
-    p.add_argument("--solver", default="spring_mass", choices=("mpm", "lbs", "spring_mass"),
+    p.add_argument("--solver", default="spring_mass", choices=SOLVER_NAMES,
                    help="with --diagnose: the solver the diagnosis uses (default spring_mass)")
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ...solvers.registry import SOLVER_NAMES
 from ._common import device as device_type
 from ._common import existing_file
 
@@ -78,7 +79,7 @@ def load_measurement(args):
 def add_arguments(p):
     p.add_argument("measurement", type=existing_file, metavar="MEASUREMENT",
                    help="measurement file: .npz (unipixie.measurement/1) or .csv (t,id,x,y,z)")
-    p.add_argument("--solver", default="auto", choices=("auto", "mpm", "lbs", "spring_mass"),
+    p.add_argument("--solver", default="auto", choices=("auto",) + SOLVER_NAMES,
                    help="solver that simulates the model (default auto: the most faithful the device affords, "
                         "mpm on a GPU, spring_mass on the CPU; docs/diagnosis.md)")
     p.add_argument("--out", required=True, metavar="DIR", help="directory for diagnosis.json, pictures and HTML")

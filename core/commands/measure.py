@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ...solvers.registry import SOLVER_NAMES
 from ._common import device as device_type
 from ._common import existing_file
 
@@ -31,8 +32,7 @@ def add_arguments(p):
     s.add_argument("--effect", action="append", default=[], metavar="EFFECT",
                    help="hidden effect, e.g. wind:acceleration=0,0.5,0 or stiffness_region:factor=3,box=0,0,0,1,1,1; "
                         "repeatable (none: no hidden effect)")
-    s.add_argument("--solver", default="mpm", choices=("mpm", "lbs", "spring_mass"), help="generating solver "
-                                                                                           "(default mpm)")
+    s.add_argument("--solver", default="mpm", choices=SOLVER_NAMES, help="generating solver (default mpm)")
     s.add_argument("--noise", type=float, default=0.001, metavar="M", help="noise σ per coordinate in metres "
                                                                           "(default 0.001)")
     s.add_argument("--occlusion", type=float, default=0.1, help="fraction of samples hidden (default 0.1)")

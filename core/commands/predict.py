@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ...solvers.registry import SOLVER_NAMES
 from ._common import device, existing_file, positive_int, unit_interval
 from ._common import seed as seed_type
 
@@ -27,7 +28,8 @@ def add_arguments(p):
     p.add_argument("--alpha", type=unit_interval, default=None, help="one alpha in [0, 1] (soft to stiff; default 0.5)")
     p.add_argument("--alphas", type=_alphas, default=None, metavar="A,B,...", help="several alphas, predicted in one pass")
     p.add_argument("--sweep", type=positive_int, default=None, metavar="K", help="predict K evenly spaced alphas and write the cached sweep")
-    p.add_argument("--heads", default="mpm,lbs,spring_mass", help="comma-separated: mpm, lbs, spring_mass (default all)")
+    p.add_argument("--heads", default=",".join(SOLVER_NAMES),
+                   help=f"comma-separated: {', '.join(SOLVER_NAMES)} (default all)")
     p.add_argument("--seed", type=seed_type, default=0, help="noise seed (same seed, same result)")
     p.add_argument("--steps", type=positive_int, default=None, help="Heun steps, 1 or more (default 15)")
     p.add_argument("--device", type=device, default="auto")

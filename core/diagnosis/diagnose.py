@@ -318,25 +318,6 @@ class Diagnosis:
         return "\n".join(lines)
 
 
-def effect_spec(effect: fx.Effect) -> str:
-    """The command-line form of an effect (``name:key=value,...``), readable by :func:`effects.parse`.
-
-    ``stiffness_region`` regions are written as ``box=x0,y0,z0,x1,y1,z1`` or ``points=i+j+...``.
-    """
-    parts = []
-    for k, v in effect.params_dict().items():
-        if isinstance(v, dict):
-            if "box" in v:
-                parts.append("box=" + ",".join(f"{x:.6g}" for x in np.asarray(v["box"], dtype=float).reshape(-1)))
-            else:
-                parts.append("points=" + "+".join(str(int(i)) for i in v["points"]))
-        elif isinstance(v, list):
-            parts.append(f"{k}=" + ",".join(f"{x:.6g}" for x in v))
-        else:
-            parts.append(f"{k}={float(v):.6g}")
-    return effect.name + (":" + ",".join(parts) if parts else "")
-
-
 def _f(x):
     if x is None:
         return None

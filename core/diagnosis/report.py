@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...solvers.registry import SOLVER_NAMES
 from ..atomic_io import OutputLock, check_writable, save_figure, write_text
 from ..errors import UserError
 
@@ -43,7 +44,7 @@ def validate_report(doc: dict) -> None:
             raise UserError(f"diagnosis report: key '{k}' is missing")
     if doc["format"] != "unipixie.diagnosis/1":
         raise UserError(f"diagnosis report: key 'format' is {doc['format']!r}")
-    if doc["solver"] not in ("mpm", "lbs", "spring_mass"):
+    if doc["solver"] not in SOLVER_NAMES:
         raise UserError(f"diagnosis report: key 'solver' is {doc['solver']!r}")
     b = doc["baseline"]
     if not (isinstance(b, dict) and isinstance(b.get("rmse"), (int, float)) and isinstance(b.get("worst_points"), list)

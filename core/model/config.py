@@ -10,7 +10,7 @@ Training Details"); :data:`PRESETS` holds smaller ones (``small`` for a model
 shipped with the add-on, ``tiny`` for tests).  Shared contracts are imported,
 never copied: the material classes from :mod:`unipixie.solvers.materials`, the
 650 LBS parameters from :mod:`unipixie.solvers.skinning`, the number of
-spring-mass anchors from :mod:`unipixie.solvers.spring_mass` when importable.
+spring-mass anchors from :mod:`unipixie.solvers.spring_mass_settings` when importable.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ...solvers import materials
+from ...solvers.registry import SOLVER_NAMES
 from ...solvers.skinning import LBS_PARAM_COUNT
 from ..errors import UserError, read_json
 from .normalization import DEFAULT_NORMALISATION, normalisation_from_dict, normalisation_to_dict
@@ -34,14 +35,14 @@ FALLBACK_SPRING_ANCHORS = 2048
 def default_spring_anchors() -> int:
     """The spring-mass solver's default anchor count (``DEFAULT_ANCHORS``), or the paper's 2048."""
     try:
-        from ...solvers.spring_mass import DEFAULT_ANCHORS  # noqa: PLC0415 - optional: needs warp
+        from ...solvers.spring_mass_settings import DEFAULT_ANCHORS  # noqa: PLC0415
     except ImportError:
         return FALLBACK_SPRING_ANCHORS
     return int(DEFAULT_ANCHORS)
 
 
-HEADS = ("mpm", "lbs", "spring_mass")
-"""The decoder heads, in the order the model runs them."""
+HEADS = SOLVER_NAMES
+"""The decoder heads, in the order the model runs them: one per solver (:data:`unipixie.solvers.registry.SOLVERS`)."""
 
 
 @dataclass

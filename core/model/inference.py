@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from ...solvers import materials
+from ...solvers.registry import ALIASES as SOLVER_ALIASES
 from ..errors import UserError
 from ..progress import Progress, silent
 from ..types import FeatureGrid, MaterialField
@@ -46,9 +47,6 @@ DEFAULT_SWEEP_COUNT = 11
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_CHECKPOINT = REPO_ROOT / "models" / "default"
 """Where the shipped model lives (``models/default/`` of the package)."""
-
-HEAD_ALIASES = {"spring": "spring_mass", "springmass": "spring_mass", "spring-mass": "spring_mass"}
-
 
 @dataclass
 class LBSPrediction:
@@ -102,7 +100,7 @@ def canonical_heads(heads) -> tuple:
         heads = [h for h in heads.replace(" ", "").split(",") if h]
     out = []
     for h in heads:
-        k = HEAD_ALIASES.get(str(h).strip().lower(), str(h).strip().lower())
+        k = SOLVER_ALIASES.get(str(h).strip().lower(), str(h).strip().lower())
         if k not in HEADS:
             raise UserError(f"unknown head {h!r}; choose from {', '.join(HEADS)}")
         if k not in out:
@@ -257,7 +255,7 @@ class Predictor:
         if int(steps) < 1:
             raise UserError(f"steps must be >= 1, got {steps}")
         progress = progress or silent()
-        flow_heads = [h for h in heads if h in ("mpm", "lbs", "spring_mass")]
+        flow_heads = [h for h in heads if h in HEADS]
         evaluations = 2 * steps - (1 if self.cfg.prediction == "data" else 0)
         sub = progress.sub(1.0, 1 + 0.5 * evaluations * len(flow_heads), "predict")
         t_start = time.perf_counter()
@@ -355,7 +353,7 @@ def predict(feature_grid: FeatureGrid, alphas: Sequence[float] = (0.5,), heads=H
     """Predict materials for ``feature_grid`` at every α (one batched pass, one shared noise sample).
 
     feature_grid: the model's input (:class:`~unipixie.core.types.FeatureGrid`); alphas: values in [0, 1];
-    heads: any of ``"mpm"``, ``"lbs"``, ``"spring_mass"``; seed: noise seed (same seed, same result);
+    heads: any of :data:`HEADS`; seed: noise seed (same seed, same result);
     checkpoint: checkpoint directory (default: the shipped model in ``models/default``).
     """
     return get_predictor(checkpoint, device).predict(feature_grid, alphas, heads, seed, steps, progress)

@@ -23,6 +23,7 @@ from ..errors import UserError
 from ..paths import cache_dir, content_key
 from ..progress import Progress
 from ..types import FeatureGrid, GridGeometry, MaterialField, unpack_occupancy
+from .config import HEADS
 from .inference import DEFAULT_STEPS, DEFAULT_SWEEP_COUNT, LBSPrediction, Prediction, Predictor, SpringPrediction
 
 SWEEP_FORMAT = "unipixie.alpha_sweep/1"
@@ -181,7 +182,7 @@ def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, 
 
 
 def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_SWEEP_COUNT, seed: int = 0,
-                  heads=("mpm", "lbs", "spring_mass"), steps: int = DEFAULT_STEPS, use_cache: bool = True,
+                  heads=HEADS, steps: int = DEFAULT_STEPS, use_cache: bool = True,
                   progress: Optional[Progress] = None, alphas=None) -> AlphaSweep:
     """Predict at ``count`` evenly spaced α values — or at exactly ``alphas`` (ascending, e.g. the α values
     of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``)."""

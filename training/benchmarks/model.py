@@ -66,7 +66,7 @@ def run(args) -> list[dict]:
     import torch
 
     from ...core.benchmarks import median_time
-    from ...core.model.config import preset
+    from ...core.model.config import HEADS, preset
     from ...core.model.inference import Predictor, resolve_torch_device
     from ...core.model.layout import VoxelBatch
     from ...core.model.network import UniPixieModel
@@ -119,7 +119,7 @@ def run(args) -> list[dict]:
             results.append({"case": f"{label}, {base}", "device": name, "metric": f"peak_gpu_memory_gib_{metric}",
                             "value": peak, "runs": runs, "unit": "GiB"})
 
-    heads = ("mpm", "lbs", "spring_mass")
+    heads = HEADS
     if not gpu:  # allocate once outside the timed runs
         predictor.predict(grid, [0.5], heads=("spring_mass",), steps=1)
     if "mpm1" in cases:

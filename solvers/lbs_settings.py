@@ -1,0 +1,113 @@
+"""The LBS solver's set-up and stepping settings (:class:`LBSSettings`) and their defaults (SI units).
+
+Light on purpose (numpy only): the solver registry (:mod:`.registry`), cost estimates and the command line
+read them without loading the solver, torch or Warp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar, Optional
+
+import numpy as np
+
+from ..core.errors import UserError
+from . import skinning
+from .lbs_fit import DEFAULT_FIT_ITERATIONS
+from .settings import SolverSettings
+
+DEFAULT_CUBATURE_POINTS = 500
+DEFAULT_MASS_SAMPLES = 4000
+DEFAULT_COLLISION_POINTS = 256
+DEFAULT_MAX_DT = 5.0e-3
+"""Largest step (s); a frame interval is split into equal steps no longer than this."""
+DEFAULT_NEWTON_ITERATIONS = 4
+INTEGRATORS = ("newmark", "backward_euler")
+"""Time integrators: Newmark's average acceleration (default: no numerical damping) and backward Euler (damps
+every vibration the step does not resolve: for settling into a static state with large steps)."""
+
+@dataclass
+class LBSSettings(SolverSettings):
+    """Set-up and stepping options of the LBS solver.
+
+    handles: H learned handles (the constant handle is extra).
+    cubature_points / mass_samples / collision_points: sample counts (module docstring).
+    skinning_params: ``None`` (fit with :func:`.lbs_fit.fit_skinning`, cached on disk) or the
+        (H·64 + H,) parameters — what the model's HyperNetwork predicts.
+    fit_iterations: Simplicits refinement steps when fitting.
+    max_dt: largest time step, s.
+    newton_iterations: at most this many Newton iterations per step.
+    newton_tolerance: stop when the next Newton update (mass-weighted RMS) would be below this × the body size.
+    line_search_steps: step halvings before giving up on an iteration.
+    reuse_hessian: factor the Hessian once per step and reuse it for the step's later Newton
+        iterations (each still has a line search on the true energy).
+    clamp_stiffness: dimensionless penalty factor of the clamp (module docstring).
+    friction_velocity: m/s, slip speed below which ground friction sticks.
+    cache_skinning: reuse fitted parameters from the cache directory.
+    torch_threads: torch intra-op threads on the CPU while stepping — the host's Newton solve, and the
+        elastic terms on a CPU device (0 = leave torch's setting).
+    line_search_candidates: step lengths (1, 1/2, 1/4, ...) of the backtracking line search
+        evaluated together in one launch; the accepted length is the same as one at a time (the first
+        that satisfies the Armijo condition).  0 = automatic: 1 on the CPU (each costs a kernel's
+        work), 4 on a GPU (they cost one launch and one synchronisation).
+    profile_device: time the device phases of a GPU run with CUDA events (``meta["phase_seconds"]``;
+        adds a few microseconds per evaluation).  On the CPU they are always timed.
+    integrator: ``"newmark"`` (default; average acceleration, no numerical damping) or ``"backward_euler"``
+        (quasi-static: settles into equilibrium with large steps, and damps vibrations and bounces it does not
+        resolve - not for dynamics).
+    """
+
+    solver_words: ClassVar[str] = "LBS"
+
+    handles: int = skinning.DEFAULT_HANDLES
+    cubature_points: int = DEFAULT_CUBATURE_POINTS
+    mass_samples: int = DEFAULT_MASS_SAMPLES
+    collision_points: int = DEFAULT_COLLISION_POINTS
+    skinning_params: Optional[np.ndarray] = None
+    fit_iterations: int = DEFAULT_FIT_ITERATIONS
+    max_dt: float = DEFAULT_MAX_DT
+    newton_iterations: int = DEFAULT_NEWTON_ITERATIONS
+    newton_tolerance: float = 1e-6
+    line_search_steps: int = 10
+    reuse_hessian: bool = True
+    clamp_stiffness: float = 1.0
+    friction_velocity: float = 1e-3
+    cache_skinning: bool = True
+    torch_threads: int = 1
+    line_search_candidates: int = 0
+    profile_device: bool = False
+    integrator: str = "newmark"
+
+    def __post_init__(self):
+        if self.integrator not in INTEGRATORS:
+            raise UserError(f"LBS setting 'integrator' must be one of {INTEGRATORS}, got {self.integrator!r}")
+        for name in ("handles", "cubature_points", "mass_samples", "collision_points", "newton_iterations",
+                     "line_search_steps"):
+            val = getattr(self, name)
+            if not isinstance(val, (int, np.integer)) or val < 1:
+                raise UserError(f"LBS setting '{name}' must be a positive whole number, got {val!r}")
+            setattr(self, name, int(val))
+        for name in ("fit_iterations", "line_search_candidates"):
+            val = getattr(self, name)
+            if not isinstance(val, (int, np.integer)) or val < 0:
+                raise UserError(f"LBS setting '{name}' must be a whole number >= 0, got {val!r}")
+            setattr(self, name, int(val))
+        for name in ("max_dt", "newton_tolerance", "clamp_stiffness", "friction_velocity"):
+            val = getattr(self, name)
+            try:
+                ok = math.isfinite(float(val)) and float(val) > 0
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise UserError(f"LBS setting '{name}' must be a positive number, got {val!r}")
+            setattr(self, name, float(val))
+        if self.skinning_params is not None:
+            p = np.asarray(self.skinning_params, dtype=np.float64).reshape(-1)
+            expected = skinning.param_count(self.handles)
+            if p.size != expected:
+                raise UserError(f"skinning parameters must have {expected} numbers for {self.handles} handles "
+                                f"(H·64 + H), got {p.size}")
+            if not np.all(np.isfinite(p)):
+                raise UserError("skinning parameters contain NaN/inf")
+            self.skinning_params = p

@@ -1,0 +1,174 @@
+"""The MPM solver's numerical settings (:class:`MPMSettings`) and their defaults (SI units).
+
+Light on purpose (numpy only): the solver registry (:mod:`.registry`), cost estimates and the command line
+read them without loading the solver or Warp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar, Optional
+
+import numpy as np
+
+from ..core.errors import UserError
+from .settings import SolverSettings
+
+P2G_SCATTER_MODES = ("atomic", "vector", "warp")
+"""How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
+
+DEFAULT_CELLS_ACROSS = 32
+"""Grid cells across a mesh body's largest extent by default."""
+DEFAULT_CELLS_ACROSS_THINNEST = 4
+"""Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: a clamped bar four cells thick
+sags 1.4–5.8 % more than Euler–Bernoulli and vibrates within 0.8 % of its frequency)."""
+AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
+"""Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
+
+
+@dataclass
+class MPMSettings(SolverSettings):
+    """Numerical settings of the MPM solver (SI units).
+
+    dx: grid cell size in metres; ``None`` = for a mesh, the finer of the body's largest extent / ``cells_across``
+        and its thinnest parts' thickness (:func:`~.sampling.thinnest_part`) / ``cells_across_thinnest``, the
+        latter no finer than ``auto_max_particles`` allow (a warning says so); for a particle set,
+        ``particles_per_cell_axis`` × the point spacing.
+    cells_across: grid cells across the largest extent of a mesh body (when ``dx`` is None); ``None`` =
+        :data:`DEFAULT_CELLS_ACROSS`.
+    cells_across_thinnest: grid cells across the thinnest parts of a mesh body (when ``dx`` is None): a slender
+        bar, a trunk or a leaf bends as the continuum does only with several cells across it
+        (docs/fidelity.md measures how many); 0 = the largest extent alone decides; ``None`` =
+        :data:`DEFAULT_CELLS_ACROSS_THINNEST` when ``cells_across`` is not given either (the bake default),
+        0 when it is (a caller that asks for N cells across gets N cells across, as the demo and tests do).
+    auto_max_particles: the particle budget of the automatic ``dx``; ``None`` = :data:`AUTO_MAX_PARTICLES`
+        of the device (a GPU affords ten times a CPU's particles in the same wall time).
+    particles_per_cell_axis: mesh filling: particles per cell along each axis (2 → 8 per cell);
+        particle volume = cell volume / particles per cell.
+    jitter: random offset of the filling lattice, fraction of the particle spacing (0 = regular).
+    seed: random seed of the jitter.
+    cfl: the time step is at most ``cfl · dx / (c + |v|max + |a| Δt_frame)`` with
+        c = sqrt((λ + 2μ)/ρ) the largest elastic (P-)wave speed.
+    viscous_cfl: with material damping η the time step is also at most ``viscous_cfl · ρ dx² / η``.
+    max_dt: a user cap on the time step in seconds (``None`` = no cap).
+    max_substeps_per_frame: a frame needing more substeps than this stops the run as diverged.
+    domain_margin_cells: empty cells kept around the material (plus the distance it can travel in
+        one frame); the grid follows the material each frame.
+    max_grid_nodes: largest grid (nodes per environment) the run may grow to.
+    max_particles: refuse bodies that would need more particles than this.
+    material_sampling: ``"nearest"`` or ``"trilinear"`` lookup of voxel material fields.
+    initial_deformation: optional (3, 3) elastic deformation gradient every particle starts with
+        (the body is given in its deformed shape, e.g. a pre-stretched bar); ``None`` = identity.
+    sort_particles: reorder particles by grid cell before every chunk of substeps (memory locality;
+        on a GPU it also lets a warp's particles share stencils, which the ``"warp"`` scatter exploits).
+
+    GPU tuning (the results do not depend on them beyond float reassociation; ``None``/``"auto"``
+    picks the device's default, the CPU's being the plain kernels):
+
+    p2g_scatter: how P2G adds to the grid: ``"atomic"`` (one Warp vec4 atomic = four scalar atomics
+        per node), ``"vector"`` (one 16-byte vector reduction per node on sm_90+), ``"warp"``
+        (warp-aggregated per stencil, then vector reductions) or ``"auto"`` (``"warp"`` on CUDA,
+        ``"atomic"`` on the CPU).
+    split_g2p: gather to particles and to tracked points in two kernels (fewer registers for the
+        particles); ``None`` = on CUDA only.
+    graph_substeps: replay substeps as captured graphs of up to this many substeps (0 = launch each
+        kernel from Python); ``None`` = 16 on CUDA, 0 on the CPU.
+    block_dim: threads per block of the substep kernels (a multiple of 32, at most 1024).
+    sort_interval: also re-sort the particles every this many substeps within a chunk (0 = once per
+        chunk).
+    """
+
+    solver_words: ClassVar[str] = "MPM"
+
+    dx: Optional[float] = None
+    cells_across: Optional[int] = None
+    cells_across_thinnest: Optional[int] = None
+    auto_max_particles: Optional[int] = None
+    particles_per_cell_axis: int = 2
+    jitter: float = 0.0
+    seed: int = 0
+    cfl: float = 0.4
+    viscous_cfl: float = 0.1
+    max_dt: Optional[float] = None
+    max_substeps_per_frame: int = 20000
+    domain_margin_cells: int = 4
+    max_grid_nodes: int = 1 << 25
+    max_particles: int = 20_000_000
+    material_sampling: str = "nearest"
+    initial_deformation: Optional[np.ndarray] = None
+    sort_particles: bool = True
+    p2g_scatter: str = "auto"
+    split_g2p: Optional[bool] = None
+    graph_substeps: Optional[int] = None
+    block_dim: int = 256
+    sort_interval: int = 0
+
+    def __post_init__(self):
+        def positive(name, value, integer=False):
+            try:
+                x = int(value) if integer else float(value)
+            except (TypeError, ValueError):
+                raise UserError(f"MPM setting '{name}' must be a number, got {value!r}") from None
+            if not (math.isfinite(x) and x > 0):
+                raise UserError(f"MPM setting '{name}' must be positive, got {value!r}")
+            return x
+
+        if self.dx is not None:
+            self.dx = positive("dx", self.dx)
+        if self.max_dt is not None:
+            self.max_dt = positive("max_dt", self.max_dt)
+        if self.cells_across_thinnest is None:
+            self.cells_across_thinnest = DEFAULT_CELLS_ACROSS_THINNEST if self.cells_across is None else 0
+        if self.cells_across is None:
+            self.cells_across = DEFAULT_CELLS_ACROSS
+        self.cells_across_thinnest = int(self.cells_across_thinnest)
+        if self.cells_across_thinnest < 0:
+            raise UserError(f"MPM setting 'cells_across_thinnest' must be 0 (off) or positive, got "
+                            f"{self.cells_across_thinnest}")
+        if self.auto_max_particles is not None:
+            self.auto_max_particles = positive("auto_max_particles", self.auto_max_particles, integer=True)
+        for name in ("cells_across", "particles_per_cell_axis",
+                     "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
+            setattr(self, name, positive(name, getattr(self, name), integer=True))
+        self.cfl = positive("cfl", self.cfl)
+        self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
+        if self.cfl > 1.0:
+            raise UserError(f"MPM setting 'cfl' must be at most 1 (0.3-0.5 is usual), got {self.cfl}")
+        self.domain_margin_cells = int(self.domain_margin_cells)
+        if self.domain_margin_cells < 1:
+            raise UserError("MPM setting 'domain_margin_cells' must be at least 1")
+        self.jitter = float(self.jitter)
+        if not 0.0 <= self.jitter <= 1.0:
+            raise UserError(f"MPM setting 'jitter' must lie in [0, 1], got {self.jitter}")
+        if self.material_sampling not in ("nearest", "trilinear"):
+            raise UserError(f"MPM setting 'material_sampling' must be 'nearest' or 'trilinear', "
+                            f"got {self.material_sampling!r}")
+        if self.p2g_scatter not in ("auto",) + P2G_SCATTER_MODES:
+            raise UserError(f"MPM setting 'p2g_scatter' must be one of {('auto',) + P2G_SCATTER_MODES}, "
+                            f"got {self.p2g_scatter!r}")
+        if self.split_g2p is not None:
+            self.split_g2p = bool(self.split_g2p)
+        for name in ("graph_substeps", "sort_interval"):
+            value = getattr(self, name)
+            if value is None and name == "graph_substeps":
+                continue
+            try:
+                value = int(value)
+            except (TypeError, ValueError):
+                raise UserError(f"MPM setting '{name}' must be a whole number, got {value!r}") from None
+            if value < 0:
+                raise UserError(f"MPM setting '{name}' must be 0 or more, got {value}")
+            setattr(self, name, value)
+        try:
+            self.block_dim = int(self.block_dim)
+        except (TypeError, ValueError):
+            raise UserError(f"MPM setting 'block_dim' must be a whole number, got {self.block_dim!r}") from None
+        if not (32 <= self.block_dim <= 1024 and self.block_dim % 32 == 0):
+            raise UserError(f"MPM setting 'block_dim' must be a multiple of 32 from 32 to 1024, got {self.block_dim}")
+        if self.initial_deformation is not None:
+            F = np.asarray(self.initial_deformation, dtype=np.float64)
+            if F.shape != (3, 3) or not np.all(np.isfinite(F)) or np.linalg.det(F) <= 0:
+                raise UserError("MPM setting 'initial_deformation' must be a finite 3x3 matrix with positive "
+                                "determinant")
+            self.initial_deformation = F
