@@ -30,7 +30,7 @@ from . import effects as effects_mod
 from .body import Body
 from .effects import Effect, EffectContext, PhysicsTerms
 from .material_sampling import MaterialSpec
-from .registry import canonical_solver
+from .registry import SOLVERS, canonical_solver
 from .scenario import Scenario
 
 def check_frame_times(frame_times) -> np.ndarray:
@@ -101,13 +101,7 @@ def coerce_settings(solver: str, settings):
     """The named solver's settings object from ``settings`` (``None``, a dict of its fields or the object),
     checked: an unknown key or a bad value (``anchors="abc"``) is a :class:`UserError` naming it — before any
     long work reads a value from the dict."""
-    name = canonical_solver(solver)
-    module = solver_module(name)  # by name, as prepare() does: the solver modules import this one
-    if name == "mpm":
-        return module.MPMSettings.from_any(settings)
-    if name == "lbs":
-        return module.LBSSettings.coerce(settings)
-    return module.SpringMassSettings.coerce(settings)
+    return SOLVERS[canonical_solver(solver)].settings.from_any(settings)
 
 
 def prepare(solver: str, body: Body, material: MaterialSpec, scenario: Scenario, frame_times, device: str = "cpu",
