@@ -130,6 +130,15 @@ class SubProgress(Progress):
         self.parent.step(amount * self.span / self.total, text)
 
 
+def frame_done(progress: Optional["Progress"], amount: float, status: str) -> None:
+    """A solver's end of a frame: ``progress.step(amount, status)``, or without a progress (benchmarks, batches)
+    still the Ctrl-C check (:data:`INTERRUPTED`), so that no simulation outlives a cancelled command."""
+    if progress is not None:
+        progress.step(amount, status)
+    elif INTERRUPTED.is_set():
+        raise CancelledError()
+
+
 def silent() -> Progress:
     """A progress that shows nothing (for library calls and tests)."""
     return Progress(show_bar=False)

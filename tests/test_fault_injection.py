@@ -856,3 +856,25 @@ def test_a_swallowed_ctrl_c_still_stops_the_work_at_its_next_progress_step(capsy
     assert cli.run_command(work, None, "measure") == EXIT_CANCELLED
     assert len(steps) == 1 and "cancelled" in capsys.readouterr().err
     assert not INTERRUPTED.is_set()  # cleared when the command ends
+
+
+def test_a_simulation_without_a_progress_stops_after_ctrl_c():
+    """Benchmarks and batches run the solvers without a Progress: after Ctrl-C (the flag) the frame loop stops."""
+    import trimesh
+
+    from unipixie.core.progress import INTERRUPTED
+    from unipixie.core.errors import CancelledError
+    from unipixie.core import api
+
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    mesh.apply_translation([0, 0, 0.2])
+    body = api.Body.from_mesh(mesh)
+    sim = api.prepare("spring_mass", body, api.HomogeneousMaterial(E=2e4, nu=0.3, density=800), api.Scenario(),
+                      np.linspace(0, 0.1, 6), device="cpu", settings={"anchors": 16})
+    INTERRUPTED.set()
+    try:
+        with pytest.raises(CancelledError):
+            sim.run([])
+    finally:
+        INTERRUPTED.clear()
+    assert sim.run([]).positions.shape[0] == 6  # without the flag it runs
