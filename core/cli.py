@@ -136,8 +136,8 @@ def run_command(fn, args, command: str) -> int:
             try:
                 status = fn(args)
             except Exception as exc:
-                if not presses or getattr(exc, "exit_code", None) == EXIT_CANCELLED:
-                    raise  # no Ctrl-C, or the command's own cancellation (its message is printed below)
+                if not presses:
+                    raise
                 # Ctrl-C was pressed: its KeyboardInterrupt may have landed inside a library (an import half done,
                 # a handler that swallowed it) and come out as another error; the run was cancelled all the same
                 if not isinstance(exc, UserError):
@@ -194,10 +194,13 @@ def interrupt_guard(prefix: str = "unipixie"):
             signal.default_int_handler:
         yield []
         return
+    from .progress import INTERRUPTED
+
     presses: list = []
 
     def handler(signum, frame):
         presses.append(time.monotonic())
+        INTERRUPTED.set()  # every progress check now cancels, even if this KeyboardInterrupt is swallowed
         if len(presses) == 1:
             raise KeyboardInterrupt
         if len(presses) == 2:
@@ -211,6 +214,7 @@ def interrupt_guard(prefix: str = "unipixie"):
         yield presses
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        INTERRUPTED.clear()
 
 
 def finish(status: int) -> int:

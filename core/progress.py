@@ -18,6 +18,11 @@ from .errors import CancelledError
 Callback = Callable[[float, str], None]
 """Called with (fraction done in [0, 1], status text)."""
 
+INTERRUPTED = threading.Event()
+"""Set by the command line's Ctrl-C handler (:func:`unipixie.core.cli.interrupt_guard`): every progress check
+then raises :class:`CancelledError`, so a run stops at its next step even when a library swallowed the
+``KeyboardInterrupt`` (seen in the fault matrix: a Ctrl-C during Warp's start-up, and the job ran on)."""
+
 
 class Progress:
     """A cancellable progress sink.
@@ -61,8 +66,8 @@ class Progress:
         return self._cancel.is_set()
 
     def check(self) -> None:
-        """Raise :class:`CancelledError` if :meth:`cancel` was called."""
-        if self._cancel.is_set():
+        """Raise :class:`CancelledError` if :meth:`cancel` was called (or Ctrl-C pressed: :data:`INTERRUPTED`)."""
+        if self._cancel.is_set() or INTERRUPTED.is_set():
             raise CancelledError()
 
     # -- reporting ------------------------------------------------------------
@@ -123,6 +128,15 @@ class SubProgress(Progress):
             self.status = status
         text = f"{self.description}: {status}" if (status and self.description) else (status or self.description or None)
         self.parent.step(amount * self.span / self.total, text)
+
+
+def frame_done(progress: Optional["Progress"], amount: float, status: str) -> None:
+    """A solver's end of a frame: ``progress.step(amount, status)``, or without a progress (benchmarks, batches)
+    still the Ctrl-C check (:data:`INTERRUPTED`), so that no simulation outlives a cancelled command."""
+    if progress is not None:
+        progress.step(amount, status)
+    elif INTERRUPTED.is_set():
+        raise CancelledError()
 
 
 def silent() -> Progress:

@@ -95,7 +95,7 @@ from dataclasses import fields
 import numpy as np
 
 from ..core.errors import SimulationDiverged, UserError
-from ..core.progress import Progress
+from ..core.progress import Progress, frame_done
 from ..core.types import Trajectory
 from . import materials as materials_mod
 from . import skinning
@@ -523,8 +523,7 @@ class LBSSimulation(Simulation):
                     raise SimulationDiverged(f"the LBS simulation diverged at frame {f} (t = {self.frame_times[f]:.4g} s); "
                                              "use a smaller settings.max_dt")
             Z_frames[f] = Z
-            if progress is not None:
-                progress.step(1.0 / max(T - 1, 1), f"LBS frame {f}/{T - 1}")
+            frame_done(progress, 1.0 / max(T - 1, 1), f"LBS frame {f}/{T - 1}")
         t_out = time.perf_counter()
         # outputs: every frame's points from its handle transforms, one GEMM per chunk of frames
         out_track = self._lifted_positions(Z_frames, "tracked")

@@ -29,7 +29,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.errors import SimulationDiverged, UserError
-from ..core.progress import Progress
+from ..core.progress import Progress, frame_done
 from ..core.types import Trajectory
 from . import materials
 from .api import Simulation
@@ -400,8 +400,7 @@ class MPMSimulation(Simulation):
                 wp.copy(history, T["x"], dest_offset=f * E * M_alloc, count=E * M_alloc)
             if states is not None:
                 self._record_state(buf, scratch, states, f)
-            if progress:
-                progress.step(1.0, f"MPM frame {f}/{F_count - 1}")
+            frame_done(progress or None, 1.0, f"MPM frame {f}/{F_count - 1}")
         # last checks: NaN in the final state, particles lost in the last frame
         self._frame_stats(buf, E, N, M, F_count - 1)
         if F_count > 1:

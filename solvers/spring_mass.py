@@ -97,7 +97,7 @@ from dataclasses import fields
 import numpy as np
 
 from ..core.errors import SimulationDiverged, UserError
-from ..core.progress import Progress
+from ..core.progress import Progress, frame_done
 from ..core.types import Trajectory
 from . import materials as materials_mod
 from .api import Simulation
@@ -434,8 +434,7 @@ class SpringMassSimulation(Simulation):
                         c.launch()
             total_substeps += n_sub
             output(f)
-            if progress is not None:
-                progress.step(1.0 / max(T - 1, 1), f"spring-mass frame {f}/{T - 1}")
+            frame_done(progress, 1.0 / max(T - 1, 1), f"spring-mass frame {f}/{T - 1}")
         tracked = out_track.numpy()
         wp.synchronize_device(dev)
         wall = time.perf_counter() - t_start

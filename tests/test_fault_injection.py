@@ -970,3 +970,49 @@ def test_a_second_features_run_writing_the_same_grid_is_refused(tmp_path, capsys
     err = capsys.readouterr().err
     assert status == EXIT_BAD_INPUT and "being written by another UniPixie run" in err, err
     assert not (tmp_path / "g.npz").exists()
+
+
+def test_a_swallowed_ctrl_c_still_stops_the_work_at_its_next_progress_step(capsys):
+    """The fault matrix's Ctrl-C during Warp's start-up was swallowed and the simulation ran on for minutes: the
+    handler also raises the flag every progress check reads."""
+    from unipixie.core.progress import INTERRUPTED, Progress
+
+    steps = []
+
+    def work(args):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass  # a library swallowed it
+        with Progress(total=1000, show_bar=False) as p:
+            for _ in range(1000):
+                steps.append(1)
+                p.step(1)
+        return 0
+
+    assert cli.run_command(work, None, "measure") == EXIT_CANCELLED
+    assert len(steps) == 1 and "cancelled" in capsys.readouterr().err
+    assert not INTERRUPTED.is_set()  # cleared when the command ends
+
+
+def test_a_simulation_without_a_progress_stops_after_ctrl_c():
+    """Benchmarks and batches run the solvers without a Progress: after Ctrl-C (the flag) the frame loop stops."""
+    import trimesh
+
+    from unipixie.core.progress import INTERRUPTED
+    from unipixie.core.errors import CancelledError
+    from unipixie.core import api
+
+    mesh = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    mesh.apply_translation([0, 0, 0.2])
+    body = api.Body.from_mesh(mesh)
+    sim = api.prepare("spring_mass", body, api.HomogeneousMaterial(E=2e4, nu=0.3, density=800), api.Scenario(),
+                      np.linspace(0, 0.1, 6), device="cpu", settings={"anchors": 16})
+    INTERRUPTED.set()
+    try:
+        with pytest.raises(CancelledError):
+            sim.run([])
+    finally:
+        INTERRUPTED.clear()
+    assert sim.run([]).positions.shape[0] == 6  # without the flag it runs

@@ -101,6 +101,7 @@ SYNTH_SMALL = ["--solver", "spring_mass", "--duration", "0.2", "--fps", "20", "-
 def make_fixtures(folder: Path, env: dict, blend: bool = True) -> None:
     """Small valid inputs every case copies: a measurement (npz, CSV + side-car), one with a strong hidden wind,
     a .blend with one object, a feature grid, a material field."""
+    shutil.rmtree(folder, ignore_errors=True)  # a --work folder used before: made afresh
     folder.mkdir(parents=True, exist_ok=True)
     run = lambda cmd: subprocess.run(cmd, cwd=folder, env=env, capture_output=True, text=True, check=True)  # noqa: E731
     run(_cli("measure", "synth", "--out", "m.npz", *SYNTH_SMALL))
