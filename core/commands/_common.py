@@ -13,46 +13,35 @@ def existing_file(text: str) -> Path:
     return p
 
 
-def unit_interval(text: str) -> float:
+def _number(text: str, cast, ok, expected: str, expected_value: str = "", show_text: bool = False):
+    """``cast(text)`` if it parses and ``ok`` holds; else an ``ArgumentTypeError`` "expected …, got …"."""
     try:
-        x = float(text)
+        x = cast(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= x <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {x:g}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+    if not ok(x):
+        shown = repr(text) if show_text else (f"{x:g}" if isinstance(x, float) else str(x))
+        raise argparse.ArgumentTypeError(f"expected {expected_value or expected}, got {shown}")
     return x
+
+
+def unit_interval(text: str) -> float:
+    return _number(text, float, lambda x: 0.0 <= x <= 1.0, "a number in [0, 1]")
 
 
 def positive_int(text: str) -> int:
-    try:
-        x = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}") from None
-    if x <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {x}")
-    return x
+    return _number(text, int, lambda x: x > 0, "a positive whole number")
 
 
 def positive_number(text: str) -> float:
     """A finite number greater than 0."""
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (x > 0 and x != float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return x
+    return _number(text, float, lambda x: x > 0 and x != float("inf"), "a positive number",
+                   "a positive finite number", show_text=True)
 
 
 def non_negative_int(text: str) -> int:
     """A whole number 0 or more."""
-    try:
-        x = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {text!r}") from None
-    if x < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {x}")
-    return x
+    return _number(text, int, lambda x: x >= 0, "a whole number 0 or more")
 
 
 SEED_LIMIT = 2 ** 32
@@ -61,13 +50,8 @@ SEED_LIMIT = 2 ** 32
 
 def seed(text: str) -> int:
     """A random seed: a whole number in [0, 2³²)."""
-    try:
-        x = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number 0 or more, got {text!r}") from None
-    if not 0 <= x < SEED_LIMIT:
-        raise argparse.ArgumentTypeError(f"expected a whole number in [0, 2^32), got {x}")
-    return x
+    return _number(text, int, lambda x: 0 <= x < SEED_LIMIT, "a whole number 0 or more",
+                   "a whole number in [0, 2^32)")
 
 
 def shard(text: str) -> tuple[int, int]:

@@ -37,13 +37,7 @@ def _alphas(text: str):
 
 
 def _positive(text: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not x > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return x
+    return _common._number(text, float, lambda x: x > 0, "a positive number", show_text=True)
 
 
 def _json_object(text: str) -> dict:
