@@ -202,6 +202,8 @@ def interrupt_guard(prefix: str = "unipixie"):
         presses.append(time.monotonic())
         INTERRUPTED.set()  # every progress check now cancels, even if this KeyboardInterrupt is swallowed
         if len(presses) == 1:
+            if _in_blender_callback(frame):
+                return  # Blender would print the exception's traceback and swallow it: the flag cancels instead
             raise KeyboardInterrupt
         if len(presses) == 2:
             print(f"\n{prefix}: cancelling: cleaning up so that nothing is left half-written "
@@ -215,6 +217,13 @@ def interrupt_guard(prefix: str = "unipixie"):
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         INTERRUPTED.clear()
+
+
+def _in_blender_callback(frame) -> bool:
+    """True when the interrupted Python code is one of Blender's own scripts (an app handler, an add-on of its
+    bundle), which Blender calls from C: an exception raised there is printed with its traceback and dropped."""
+    name = frame.f_code.co_filename if frame is not None else ""
+    return f"{os.sep}scripts{os.sep}" in name and f"{os.sep}bpy{os.sep}" in name
 
 
 def finish(status: int) -> int:

@@ -39,7 +39,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..solvers import registry as solver_registry
-from .errors import UserError
+from .errors import CancelledError, UserError
 from .progress import Progress, silent
 
 
@@ -265,7 +265,28 @@ class _Stages:
 
 def run_demo(out_dir="demo", quick: bool = False, checkpoint=None, device: str = "cpu",
              say: Callable[[str], None] = print, progress: Optional[Progress] = None) -> DemoResult:
-    """Run the demo (see the module docstring) into ``out_dir``; returns a :class:`DemoResult`.
+    """Run the demo (see the module docstring) into ``out_dir``; returns a :class:`DemoResult`.  A cancelled
+    demo (Ctrl-C, Esc) removes the files it had made in ``out_dir`` (files there before it started stay), so no
+    half demo is left that looks like a whole one."""
+    out = Path(out_dir).expanduser().resolve()
+    existed = out.is_dir()
+    before = set(out.rglob("*")) if existed else set()
+    try:
+        return _run_demo(out_dir, quick, checkpoint, device, say, progress)
+    except (CancelledError, KeyboardInterrupt):
+        made = sorted((p for p in out.rglob("*") if p not in before) if out.is_dir() else [], reverse=True)
+        for p in made:  # deepest first: files, then the folders they were in
+            try:
+                p.unlink() if not p.is_dir() or p.is_symlink() else p.rmdir()
+            except OSError:
+                pass
+        if out.is_dir() and not existed and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
+    """The demo's work (see :func:`run_demo`).
 
     It starts a new, empty Blender scene in the current session (the command line's), so run it from the
     command line, not inside a Blender session with unsaved work.  A bake that fails (e.g. a prediction too

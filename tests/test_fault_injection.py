@@ -1016,3 +1016,39 @@ def test_a_simulation_without_a_progress_stops_after_ctrl_c():
     finally:
         INTERRUPTED.clear()
     assert sim.run([]).positions.shape[0] == 6  # without the flag it runs
+
+
+def test_a_cancelled_demo_removes_only_what_it_made(tmp_path, monkeypatch):
+    """The fault matrix's Ctrl-C found a demo folder holding the objects of a demo that never finished."""
+    from unipixie.core import demo
+    from unipixie.core.errors import CancelledError
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "mine.txt").write_text("the user's")
+
+    def half_done(out_dir, *args):
+        Path(out_dir).mkdir(exist_ok=True)  # as the demo does
+        (Path(out_dir) / "objects").mkdir()
+        (Path(out_dir) / "objects" / "potted_plant.glb").write_bytes(b"glTF")
+        raise CancelledError()
+
+    monkeypatch.setattr(demo, "_run_demo", half_done)
+    with pytest.raises(CancelledError):
+        demo.run_demo(out)
+    assert sorted(p.name for p in out.rglob("*")) == ["mine.txt"]
+    with pytest.raises(CancelledError):
+        demo.run_demo(tmp_path / "fresh")
+    assert not (tmp_path / "fresh").exists()
+
+
+def test_ctrl_c_inside_a_blender_callback_only_raises_the_flag():
+    """Blender prints and drops an exception raised in its own scripts (an app handler): the first Ctrl-C there
+    leaves the cancellation to the flag (the fault matrix met a traceback from pose_library's load handler)."""
+    import types
+
+    blender_script = os.path.join(os.sep, "venv", "site-packages", "bpy", "5.0", "scripts", "addons_core", "x.py")
+    frame = types.SimpleNamespace(f_code=types.SimpleNamespace(co_filename=blender_script))
+    assert cli._in_blender_callback(frame)
+    ours = types.SimpleNamespace(f_code=types.SimpleNamespace(co_filename=str(REPO_ROOT / "core" / "bake.py")))
+    assert not cli._in_blender_callback(ours) and not cli._in_blender_callback(None)
