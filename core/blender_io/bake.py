@@ -359,7 +359,7 @@ def cache_folder(obj_name: str, options: BakeOptions, record: WriteRecord) -> tu
 
 
 def _pc2_path(folder: Path, name: str, suffix: str = "") -> Path:
-    stem = core_bake._safe_name(name) + suffix
+    stem = core_bake.safe_name(name) + suffix
     path = folder / f"{stem}.pc2"
     k = 1
     while path.exists():
