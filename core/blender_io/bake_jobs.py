@@ -1,8 +1,11 @@
-"""Bake jobs on .blend files (the command line's ``unipixie bake`` and render farms): open each scene, give the
-objects whose material is the model their prediction (:mod:`.pipeline`), bake them (:mod:`.bake`) and save."""
+"""Bake jobs on .blend files (the command line's ``unipixie bake`` and render farms): the object names of a .blend
+(:func:`blend_object_names`, for wildcards), a job's options and scenario over the object's panel settings
+(:func:`options_for_job`), and :func:`run_jobs`: open each scene, give the objects whose material is the model their
+prediction (:mod:`.pipeline`), bake them (:mod:`.bake`) and save."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -10,10 +13,77 @@ import bpy
 
 from ...solvers.registry import SOLVER_NAMES
 from .. import bake as core_bake
-from ..bake import BakeJob
+from ..bake import BakeJob, BakeOptions, ModelSource
 from ..errors import UserError
 from ..progress import Progress, silent
-from .bake import BakeReport, bake_object, options_for_job, registered_properties
+from .bake import (BakeReport, bake_object, material_source_from_settings, object_settings, registered_properties,
+                   scenario_from_scene, scene_fps)
+
+
+def options_for_job(job: BakeJob, obj, scene) -> tuple[BakeOptions, object]:
+    """A job's :class:`BakeOptions` and scenario: the job's values over the object's panel settings."""
+    s = object_settings(obj)
+    material = job.material
+    if material is None:
+        if job.alpha is not None:
+            material = ModelSource()
+        else:
+            material = material_source_from_settings(obj)
+    frames = job.frames or ((s.bake_frame_start, s.bake_frame_end) if s is not None and s.use_bake_frame_range
+                            else (scene.frame_start, scene.frame_end))
+    alpha = job.alpha if job.alpha is not None else (float(s.alpha) if s is not None else None)
+    options = BakeOptions(solver=job.solver, frames=frames, fps=scene_fps(scene), material=material, alpha=alpha,
+                          effects=list(job.effects), device=job.device, output=job.output,
+                          interpolation=job.interpolation, particles=job.particles,
+                          armature_tolerance=job.armature_tolerance, solver_settings=job.solver_settings,
+                          cache_dir=str(Path(job.out).resolve().parent / f"{Path(job.out).stem}_unipixie"))
+    sc = job.scenario or {}
+    ground_obj = None
+    use_ground = None
+    if "ground" in sc and isinstance(sc["ground"], str):
+        ground_obj = bpy.data.objects.get(sc["ground"])
+        if ground_obj is None:
+            raise UserError(f"ground object '{sc['ground']}' not found in {job.scene}")
+    clamp_obj = None
+    clamp_group = ""
+    if isinstance(sc.get("clamp"), str):
+        clamp_obj = bpy.data.objects.get(sc["clamp"])
+        if clamp_obj is None:
+            raise UserError(f"clamp object '{sc['clamp']}' not found in {job.scene}")
+    if isinstance(sc.get("clamp_group"), str):
+        clamp_group = sc["clamp_group"]
+    if "ground" in sc and not isinstance(sc["ground"], str):
+        use_ground = False  # no ground, or an explicit height set below
+    scenario = scenario_from_scene(obj, scene, ground_object=ground_obj, use_ground=use_ground,
+                                   clamp_object=clamp_obj, clamp_group=clamp_group)
+    numeric = {k: v for k, v in sc.items() if k in ("gravity", "initial_velocity", "initial_angular_velocity", "pinned_box")}
+    if isinstance(sc.get("ground"), dict):
+        numeric["ground"] = sc["ground"]
+    if numeric:
+        from ...solvers.scenario import Scenario
+
+        d = scenario.to_dict()
+        d.update(numeric)
+        scenario = Scenario.from_dict(d)
+    return options, scenario
+
+
+def blend_object_names(path) -> list[str]:
+    """Names of the objects stored in a .blend file, read without opening it (the current file is untouched)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"scene file not found: {path}")
+    if path.suffix.lower() != ".blend":
+        raise UserError(f"{path}: the scene must be a .blend file")
+    if bpy.data.filepath and os.path.samefile(bpy.data.filepath, path):
+        return [o.name for o in bpy.data.objects]  # Blender cannot "load from" the open file
+    try:
+        with bpy.data.libraries.load(str(path.resolve())) as (data_from, _data_to):
+            names = list(data_from.objects)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: not a readable .blend file ({exc})") from None
+    return names
+
 
 
 def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=print,

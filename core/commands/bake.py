@@ -192,7 +192,7 @@ def _check_one_material_source(args) -> None:
 
 
 def _object_names(scene: str):
-    from ..blender_io.bake import blend_object_names
+    from ..blender_io.bake_jobs import blend_object_names
 
     return blend_object_names(scene)
 
