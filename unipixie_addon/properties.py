@@ -151,7 +151,7 @@ class UniPixieObjectSettings(bpy.types.PropertyGroup):
     status: StringProperty(name="Status", default="")
     last_error: StringProperty(name="Last error", default="")
 
-    # -- baking (core/bake.py, unipixie_addon/operators_bake.py) -------------------------------------
+    # -- baking (core/bake/, unipixie_addon/operators_bake.py) ---------------------------------------
     bake_material_source: EnumProperty(
         name="Material", default="homogeneous", items=BAKE_MATERIAL_SOURCE_ITEMS, update=_on_bake_setting)
     bake_material_class: EnumProperty(name="Class", items=MATERIAL_CLASS_ITEMS,
