@@ -29,8 +29,6 @@ SHAPE_KEY_VERTEX_FRAME_LIMIT = 2_000_000
 """``auto`` switches from shape keys to a Mesh Cache above this many vertices × frames (24 MB of keys)."""
 MESH_CACHE_FRAME_LIMIT = 1000
 """``auto`` also uses a Mesh Cache above this many frames (a thousand shape keys is unwieldy in the UI)."""
-
-
 ARMATURE_TOLERANCE = 1e-4
 """Default largest allowed armature error, as a fraction of the object's size (0.1 mm for a 1 m object)."""
 
