@@ -34,6 +34,13 @@ def drops():
     return {s: _drop_run(s) for s in SOLVERS}
 
 
+def test_every_solver_has_its_rigid_floor():
+    from unipixie.solvers.contact import RIGID_CONTACT_BETA
+    from unipixie.solvers.registry import SOLVER_NAMES
+
+    assert set(RIGID_CONTACT_BETA) == set(SOLVER_NAMES) and all(b > 0 for b in RIGID_CONTACT_BETA.values())
+
+
 def test_clamp_to_ground_copies_and_lifts():
     p = np.array([[0.0, 0.0, -0.2], [0.0, 0.0, 0.3]])
     q = clamp_to_ground(p, 0.0)
