@@ -49,13 +49,12 @@ MEASURED_FLOORS: dict = {
     ),
     "spring_mass": (
         MeasuredDeparture("tip_sag", CANTILEVERS, -0.070),
-        MeasuredDeparture("contact_duration", ("drop",), 0.242),
-        MeasuredDeparture("rebound_peak", ("drop",), 0.162),
+        MeasuredDeparture("rebound_peak", ("drop",), 0.0695),
     ),
     "lbs": (
         MeasuredDeparture("tip_sag", CANTILEVERS, -0.188),
-        MeasuredDeparture("rebound_peak", ("drop",), 0.170),
-        MeasuredDeparture("contact_duration", ("drop",), 0.152),
+        MeasuredDeparture("contact_duration", ("drop",), 0.121),
+        MeasuredDeparture("rebound_peak", ("drop",), 0.107),
         MeasuredDeparture("frequency", CANTILEVERS, 0.100),
     ),
 }

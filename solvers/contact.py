@@ -21,7 +21,7 @@ contact shows a discretisation artefact, not physics: docs/contact.md measures e
 **How the solvers realise the rigid limit.**  Each contact sample (an MPM particle's lower face, a
 spring-mass anchor's cell, an LBS collision point) of mass m, contact area A and size ℓ (the spacing of the
 solver's samples) feels the normal spring k = min(k_g A, k_r) and the damper c = min(c_g A, m / Δt), where
-k_r = β² M A / ℓ (β = :data:`RIGID_CONTACT_BETA`, M = λ + 2μ the P-wave modulus of the touching material) is
+k_r = β² M A / ℓ (β = :data:`RIGID_CONTACT_BETA` of the solver, M = λ + 2μ the P-wave modulus of the touching material) is
 a floor as stiff as a layer of the solid's own material ℓ/β² thick: its contact frequency β c_p / ℓ is one
 the solver's resolution represents (a stiffer contact excites motion finer than the solver resolves, whose
 energy the solver then loses: measured in docs/contact.md), and the explicit solvers cap it at ω Δt ≤ 1
@@ -38,8 +38,17 @@ from __future__ import annotations
 
 import numpy as np
 
-RIGID_CONTACT_BETA = 0.55
-"""β of the rigid floor's contact frequency β c_p / ℓ (module docstring; measured in docs/contact.md)."""
+RIGID_CONTACT_BETA = {"mpm": 0.55, "spring_mass": 2.0, "lbs": 2.0}
+"""β of each solver's rigid floor, k_r = β² M A / ℓ (module docstring), from a β sweep of the canonical drop
+(docs/contact.md): the reduced models' samples lie 10–16 mm apart, so at β = 0.55 their floor was as soft as a
+layer of the solid 35–52 mm thick under a 0.2 m cube and gave back the energy it stored as extra rebound
+(spring-mass 0.1857, 0.1724, 0.1709, 0.1706 m at β = 0.55, 1.1, 2, 4; LBS 0.1870 m at 0.55, 0.1768 m at 2 and
+4): at β = 2 the rebound no longer depends on β (the explicit step's cap binds for spring-mass).  MPM's
+particles lie 3 mm apart and its floor is stiff at 0.55; at β = 2 its rebound fell from 0.1669 to 0.1555 m
+(16 cells across, below the independent referee's 0.1598 m) and the tracked points chattered on the floor."""
+
+RIGID_GROUND_STIFFNESS = 1.0e30
+"""Pa/m: a ground stiffness k_g at or above this is the rigid floor (the solvers' kernels carry k_g = ∞ as this)."""
 
 MAX_CONTACT_RATE = 1.0
 """Largest ω Δt of a contact spring in the explicit solvers (symplectic Euler is stable below 2)."""

@@ -360,7 +360,7 @@ class LBSSimulation(Simulation):
         area = self.collision_area[None]
         M_col = (lam + 2 * mu)[:, self._collision_cubature]                                  # (E, K) Pa
         k_ground = np.array([t.ground_stiffness for t in terms_list])[:, None]
-        k_rigid = RIGID_CONTACT_BETA ** 2 * M_col * area / self.cubature_spacing
+        k_rigid = RIGID_CONTACT_BETA["lbs"] ** 2 * M_col * area / self.cubature_spacing
         # the implicit step follows a contact's oscillation only while ω Δt ≲ 2 (ω² = k / m, m a sample's share
         # of the mass): a stiffer spring switched on and off by the active set feeds energy into a Newmark step
         # (a stiff duck dropped at Δt = 5 ms flew off); the cap lets a sample sink about v Δt, put back on the

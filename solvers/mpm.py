@@ -34,6 +34,7 @@ from ..core.types import Trajectory
 from . import materials
 from .api import Simulation
 from .body import Body
+from .contact import RIGID_GROUND_STIFFNESS, clamp_to_ground
 from .effects import PhysicsTerms
 from .material_sampling import MaterialSpec
 from .mpm_particles import initial_particles
@@ -301,7 +302,7 @@ class MPMSimulation(Simulation):
         for e, terms in enumerate(terms_list):
             acc[e] = sc.gravity + np.asarray(terms.extra_acceleration, dtype=np.float64)
             drag[e] = (terms.linear_drag, terms.quadratic_drag)
-            ground_law[e] = (min(terms.ground_stiffness, 1e30), terms.ground_damping, terms.friction_mu)
+            ground_law[e] = (min(terms.ground_stiffness, RIGID_GROUND_STIFFNESS), terms.ground_damping, terms.friction_mu)
             yield_stress[e] = terms.yield_stress
             eta[e] = terms.damping_eta
         acc_norm = np.linalg.norm(acc, axis=1)
@@ -407,6 +408,8 @@ class MPMSimulation(Simulation):
             self._check_lost(buf, N, F_count - 1, dt)
         if M:
             out_positions[:, 1:] = history.numpy().reshape(F_count, E, M_alloc, 3)[1:, :, :M].transpose(1, 0, 2, 3)
+            if has_ground:  # a floor that gives lets the solid sink into it; what is recorded stays on the plane
+                out_positions[...] = clamp_to_ground(out_positions, ground_z)
         if not np.all(np.isfinite(out_positions)):
             raise SimulationDiverged("MPM diverged: tracked points have NaN/inf positions; use a smaller time step "
                                      "(settings max_dt or cfl) or a lower E")
@@ -637,19 +640,20 @@ class MPMSimulation(Simulation):
             launches.append(("g2p", wp.launch(kc.g2p_particles, dim=n, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, G["v"],
                                                       Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, nodes,
-                                                      dims, dx, inv_dx, has_ground, ground_z, 0])))
+                                                      dims, dx, inv_dx, has_ground, ground_z, Env["ground"],
+                                                      0])))
             if len(self.tracked_rest):  # the combined kernel over the tracked points alone (n_particles = 0)
                 launches.append(("g2p_tracked", wp.launch(
                     k.g2p, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
                     inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
                             Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, 0, M_alloc, nodes, dims, dx,
-                            inv_dx, has_ground, ground_z, 0])))
+                            inv_dx, has_ground, ground_z, Env["ground"], 0])))
         else:
             launches.append(("g2p", wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"],
                                                       T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"],
                                                       buf.step_base, N, n, M_alloc, nodes, dims, dx, inv_dx,
-                                                      has_ground, ground_z, 0])))
+                                                      has_ground, ground_z, Env["ground"], 0])))
         cmds = buf.commands[key] = _StepCommands(launches)
         return cmds
 

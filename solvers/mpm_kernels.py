@@ -36,7 +36,8 @@ import warp as wp
 
 from .constitutive import (LAW_WEAKLY_COMPRESSIBLE, PLASTIC_SNOW, ClassLaw, constitutive_update,
                            elastic_fixed_corotated)
-from .contact_kernels import ground_contact_impulse, rigid_contact_stiffness
+from .contact import RIGID_CONTACT_BETA
+from .contact_kernels import ground_contact_impulse, rigid_contact_stiffness, rigid_floor
 
 wp.set_module_options({"enable_backward": False})
 
@@ -56,6 +57,8 @@ plane outside about 5 %: a quarter fixes the first and frees the second."""
 
 TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
 """Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
+RIGID_BETA2 = wp.constant(RIGID_CONTACT_BETA["mpm"] ** 2)
+"""β² of MPM's rigid floor (:data:`.contact.RIGID_CONTACT_BETA`)."""
 
 
 @wp.func
@@ -97,8 +100,8 @@ def particle_ground_impulse(xp: wp.vec3, vp: wp.vec3, m: float, p_wave_modulus: 
     if has_ground == 0:
         return wp.vec3(0.0)
     g = env_ground[env]
-    rigid_k = rigid_contact_stiffness(p_wave_modulus, contact_area, 2.0 * contact_radius)
-    return ground_contact_impulse(xp[2] - contact_radius, vp, m, contact_area, rigid_k,
+    rigid_k = rigid_contact_stiffness(RIGID_BETA2, p_wave_modulus, contact_area, 2.0 * contact_radius)
+    return ground_contact_impulse(xp[2] - contact_radius, vp, m, contact_area, 2.0 * contact_radius, rigid_k,
                                   2.0 * eta * rigid_k / p_wave_modulus, dt, ground_z, g[0], g[1], 0.0)
 
 
@@ -309,9 +312,12 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
 
 @wp.func(inline=True)
 def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3, bi: wp.vec3, bj: wp.vec3,
-                    bk: wp.vec3, dt: float, dx: float, inv_dx: float, has_ground: int, ground_z: float,
+                    bk: wp.vec3, dt: float, dx: float, inv_dx: float, rigid: bool, ground_z: float,
                     x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33)):
     """Store a particle's gathered velocity ``vel`` and affine matrix and move it (held ones stay put).
+
+    ``rigid``: the plane z = ``ground_z`` is a rigid floor (:func:`.contact_kernels.rigid_floor`), which the
+    particle's centre may not pass; a floor that gives lets it sink (its spring pushes it back).
 
     ``bi, bj, bk``: Σ w v_node times the node's stencil offset i, j, k; B = (Σ w v (i, j, k)ᵀ − v fxᵀ) dx and
     C = 4 B / dx² (quadratic B-splines).
@@ -322,7 +328,7 @@ def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3
         v[tid] = wp.vec3(0.0)
         return
     xn = xp + dt * vel
-    if has_ground != 0 and xn[2] < ground_z:
+    if rigid and xn[2] < ground_z:
         xn = wp.vec3(xn[0], xn[1], ground_z)
     x[tid] = xn
     v[tid] = vel
@@ -336,8 +342,11 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
         step_base: wp.array(dtype=wp.int32),
         n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
-        inv_dx: float, has_ground: int, ground_z: float, substep: int):
+        inv_dx: float, has_ground: int, ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
     """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+
+    Only a rigid floor puts particles and tracked points back on the plane (:func:`particle_advect`); on a floor
+    that gives, the host puts the tracked points' recorded positions back on it (:func:`.contact.clamp_to_ground`).
 
     Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
     velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
@@ -396,7 +405,8 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                     bi = bi + float(i) * wv
                     bj = bj + float(j) * wv
                     bk = bk + float(k) * wv
-        particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, has_ground, ground_z, x, v, C)
+        particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, rigid_floor(has_ground, env_ground[env]),
+                        ground_z, x, v, C)
         return
     # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
     W = float(0.0)
@@ -440,7 +450,7 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         if wp.isfinite(fit):
             vt = fit
     xn = xp + dt * vt
-    if has_ground != 0 and xn[2] < ground_z:
+    if rigid_floor(has_ground, env_ground[env]) and xn[2] < ground_z:
         xn = wp.vec3(xn[0], xn[1], ground_z)
     tx[t] = xn
     tv[t] = vt

@@ -34,6 +34,7 @@ from __future__ import annotations
 import warp as wp
 
 from .constitutive import ClassLaw
+from .contact_kernels import rigid_floor
 from .mpm_kernels import (HELD_FLAG, bspline_weights, particle_advect, particle_stress_elastic, particle_stress_general,
                           particle_transfer, stencil_base, stencil_inside)
 
@@ -296,7 +297,7 @@ def g2p_particles(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.
                   env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
                   env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
                   n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int,
-                  ground_z: float, substep: int):
+                  ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
     """The particle half of :data:`.mpm_kernels.g2p` (same results): gather v and C, advect."""
     tid = wp.tid()
     env = tid / n_per_env
@@ -337,4 +338,5 @@ def g2p_particles(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.
                 bi = bi + float(i) * wv
                 bj = bj + float(j) * wv
                 bk = bk + float(k) * wv
-    particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx, has_ground, ground_z, x, v, C)
+    particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx,
+                    rigid_floor(has_ground, env_ground[env]), ground_z, x, v, C)

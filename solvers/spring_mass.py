@@ -105,7 +105,7 @@ from .body import Body
 from .effects import PhysicsTerms
 from .material_sampling import MaterialSpec
 from .scenario import Scenario
-from .contact import RIGID_CONTACT_BETA
+from .contact import RIGID_CONTACT_BETA, RIGID_GROUND_STIFFNESS
 from .spring_mass_network import (build_network, softness_weights, stiffness_from_youngs_modulus,
                                   youngs_modulus_from_stiffness)
 from .spring_mass_settings import DEFAULT_ANCHORS, DEFAULT_SOFTNESS, SpringMassSettings  # noqa: F401 - DEFAULT_SOFTNESS: public
@@ -333,11 +333,11 @@ class SpringMassSimulation(Simulation):
         d_accel = wp.array(accel, dtype=wp.vec3, device=dev)
         d_lin = wp.array(np.array([t.linear_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
         d_quad = wp.array(np.array([t.quadratic_drag for t in terms_list], np.float32), dtype=wp.float32, device=dev)
-        ground_law = np.array([(min(t.ground_stiffness, 1e30), t.ground_damping, t.friction_mu) for t in terms_list])
+        ground_law = np.array([(min(t.ground_stiffness, RIGID_GROUND_STIFFNESS), t.ground_damping, t.friction_mu) for t in terms_list])
         d_ground_law = wp.array(ground_law.astype(np.float32), dtype=wp.vec3, device=dev)
         # each anchor's rigid-floor spring k_r = β² M A / ℓ (solvers/contact.py), M of the network's material
         M = P_WAVE_PER_E * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
-        rigid_k = RIGID_CONTACT_BETA ** 2 * M * (self.contact_area / self.contact_size)[None]
+        rigid_k = RIGID_CONTACT_BETA["spring_mass"] ** 2 * M * (self.contact_area / self.contact_size)[None]
         eta = np.array([t.damping_eta for t in terms_list])[:, None]
         d_rigid_k = wp.array(rigid_k.astype(np.float32), dtype=wp.float32, device=dev)
         d_rigid_c = wp.array((2.0 * eta * rigid_k / M).astype(np.float32), dtype=wp.float32, device=dev)

@@ -87,7 +87,8 @@ def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: f
     vn = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, dt)
     if has_ground != 0:
         g = ground_law[e]
-        vn = vn + im * ground_contact_impulse(xi[2] - contact_low[e, i], vn, 1.0 / im, contact_area[i],
+        size = wp.sqrt(contact_area[i])  # an anchor's cell is a cube of its volume: area ℓ², thickness ℓ
+        vn = vn + im * ground_contact_impulse(xi[2] - contact_low[e, i], vn, 1.0 / im, contact_area[i], size,
                                               rigid_k[e, i], rigid_c[e, i], dt, ground, g[0], g[1], g[2])
     x_out[e, i] = xi + dt * vn
     v_out[e, i] = vn

@@ -324,3 +324,24 @@ def test_drop_converges_between_two_meshes():
     assert abs(a["first_contact"] - math.sqrt(2 * 0.1 / 9.81)) <= 1.5e-3
     assert abs(a["rebound_peak"] - b["rebound_peak"]) < DROP_MESH_BOUND
     assert abs(a["contact_duration"] - b["contact_duration"]) <= 0.004
+
+
+def test_a_floor_that_gives_holds_a_block_at_its_weight_and_returns_what_it_stores():
+    """The ``contact_damping`` floor (k Pa/m, c Pa·s/m per unit footprint): a stiff block resting on it sinks
+    ρ g h / k (closed form), and undamped it gives back what it stores (the drop rebounds higher than on the hard
+    law, which takes the touching nodes' normal energy)."""
+    h, rho, k = 0.2, 1000.0, 1.0e5
+    mesh = fem.box_tet_mesh((h, h, h), centre=(0.0, 0.0, h / 2), spacing=h / 2)
+    model = fem.FEMModel(mesh, {"E": 2.0e6, "nu": 0.3, "density": rho}, {"gravity": [0, 0, -9.81], "ground": {"height": 0.0}},
+                         [f"contact_damping:k={k},c={2.0 * math.sqrt(k * rho * h)}"])
+    assert model.floor_area.sum() == pytest.approx(h * h, rel=1e-12)  # the footprint is the lower face
+    x = model.run([0.0, 0.6])
+    sink = h - x[-1, :, 2].max()
+    assert sink == pytest.approx(rho * 9.81 * h / k, rel=0.02), sink
+    from unipixie.training.independent_fem.study import drop_figures
+
+    soft = drop_figures(4, duration=0.3, floor=(1.0e6, 0.0))
+    hard = drop_figures(4, duration=0.3)
+    assert soft["rebound_peak"] > hard["rebound_peak"] + 0.02 and soft["lowest"] < -0.01, (soft, hard)
+    with pytest.raises(UserError, match="'k' must be positive"):
+        fem.FEMModel(mesh, {"E": 2.0e6, "nu": 0.3, "density": rho}, {}, ["contact_damping:k=0,c=1"])

@@ -33,7 +33,10 @@ Model
   as the stiffest element, so it barely shortens the step, and sinks ~0.1 mm under a block's weight;
   ζ = 0 keeps what the springs store.  ``"hard"``: an inelastic projection after each step — a node
   below the plane is put back on it and its downward velocity zeroed (never any penetration at the
-  frames; the energy of the touching nodes' normal motion is lost).
+  frames; the energy of the touching nodes' normal motion is lost).  With the ``contact_damping``
+  effect (k Pa/m, c Pa·s/m) neither law applies: the floor gives and damps, each node feeling
+  A_a (k (h − z) − c v_z), never pulling, with A_a its footprint (a third of the horizontal projection of
+  each downward-facing boundary triangle it is a corner of).
 * **Clamp.**  Nodes inside the scenario's ``pinned_box`` never move.
 
 Effects (the spec's vocabulary and parameter meanings, implemented here independently)
@@ -70,11 +73,9 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...core.errors import SimulationDiverged, UserError
+from .inputs import EFFECT_NAMES, EXTRA_EFFECT_NAMES, _check_material, _effect_params, _vector3
 
 MEASUREMENT_FORMAT = "unipixie.measurement/1"
-EFFECT_NAMES = ("linear_drag", "quadratic_drag", "material_damping", "ground_friction", "plasticity", "wind",
-                "stiffness_region")
-"""The spec's effect vocabulary (shared/specs/measurement-format.md §2)."""
 CONTACT_LAWS = ("penalty", "hard")
 """The ground's contact laws (:class:`FEMSettings`.contact_law); neither is the truth, so a referee reports both."""
 RK4_STABILITY = 2.5
@@ -264,128 +265,6 @@ class FEMSettings:
                             f"{self.contact_damping_ratio}, {self.contact_stiffness}")
 
 
-def _effect_params(effects) -> dict:
-    """{name: params dict} from ``[{"effect": name, "params": {...}}]``, ``{name: params}`` or
-    ``"name:key=value,..."`` strings (vectors as ``a,b,c``; ``stiffness_region`` takes ``box=x0,y0,z0,x1,y1,z1``)."""
-    out: dict = {}
-    if isinstance(effects, dict):
-        items = list(effects.items())
-    else:
-        items = []
-        for e in effects:
-            if isinstance(e, str):
-                name, _, rest = e.partition(":")
-                params: dict = {}
-                key = None
-                for tok in rest.split(","):
-                    if not tok:
-                        continue
-                    if "=" in tok:
-                        key, val = tok.split("=", 1)
-                        key = key.strip()
-                        params[key] = [_number(val, e)]
-                    elif key is not None:
-                        params[key].append(_number(tok, e))
-                    else:
-                        raise UserError(f"effect {e!r}: expected 'name:key=value,...', got {tok!r}")
-                params = {k: (v[0] if len(v) == 1 else v) for k, v in params.items()}
-                if "box" in params:
-                    params["region"] = {"box": np.asarray(params.pop("box"), float).reshape(2, 3).tolist()}
-                items.append((name.strip(), params))
-            elif isinstance(e, dict) and "effect" in e:
-                items.append((e["effect"], dict(e.get("params") or {})))
-            else:
-                raise UserError(f"effect {e!r}: expected 'name:key=value,...' or {{'effect': name, 'params': {{...}}}}")
-    for name, params in items:
-        if name not in EFFECT_NAMES:
-            raise UserError(f"unknown effect {name!r}; the spec's effects are {', '.join(EFFECT_NAMES)}")
-        if name in out:
-            raise UserError(f"effect {name!r} is given twice")
-        out[name] = _check_effect(name, dict(params))
-    return out
-
-
-_EFFECT_PARAMS = {"linear_drag": ("c",), "quadratic_drag": ("k",), "material_damping": ("eta",),
-                  "ground_friction": ("mu",), "plasticity": ("yield_stress",), "wind": ("acceleration",),
-                  "stiffness_region": ("factor", "region")}
-"""The parameters each effect takes (``stiffness_region`` also accepts ``rel_box`` in :class:`Case`)."""
-
-
-def _number(text: str, where) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise UserError(f"effect {where!r}: {text!r} is not a number") from None
-
-
-def _check_effect(name: str, params: dict) -> dict:
-    """``params`` checked against the spec (names, ranges, shapes); a :class:`UserError` names what is wrong."""
-    allowed = set(_EFFECT_PARAMS[name]) | ({"rel_box"} if name == "stiffness_region" else set())
-    unknown = sorted(set(params) - allowed)
-    if unknown:
-        raise UserError(f"effect {name!r}: unknown parameter(s) {unknown}; it takes {', '.join(_EFFECT_PARAMS[name])}")
-    required = ("factor",) if name == "stiffness_region" else _EFFECT_PARAMS[name]
-    missing = [k for k in required if k not in params]
-    if missing:
-        raise UserError(f"effect {name!r}: missing parameter(s) {missing}")
-    if name == "stiffness_region":
-        if ("region" in params) == ("rel_box" in params):
-            raise UserError("effect 'stiffness_region': give exactly one of 'region' ({'box': [[x0,y0,z0],[x1,y1,z1]]}, "
-                            "metres) or 'rel_box' (the same in [0, 1]³ of the solid's bounds)")
-        box = params["region"].get("box") if isinstance(params.get("region"), dict) else params.get("rel_box")
-        try:
-            b = np.asarray(box, dtype=np.float64).reshape(2, 3)
-        except (TypeError, ValueError):
-            raise UserError(f"effect 'stiffness_region': the region box must be [[x0,y0,z0],[x1,y1,z1]], got {box!r}") from None
-        if not np.all(np.isfinite(b)) or np.any(b[1] < b[0]):
-            raise UserError(f"effect 'stiffness_region': the region box {b.tolist()} is not finite or has max < min")
-    for k in params:
-        if k in ("region", "rel_box"):
-            continue
-        try:
-            v = np.asarray(params[k], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise UserError(f"effect {name!r}: parameter {k!r} must be a number, got {params[k]!r}") from None
-        if name == "wind":
-            if v.shape != (3,) or not np.all(np.isfinite(v)):
-                raise UserError(f"effect 'wind': 'acceleration' must be a finite 3-vector (m/s²), got {params[k]!r}")
-            continue
-        if v.shape != () or not math.isfinite(float(v)):
-            raise UserError(f"effect {name!r}: parameter {k!r} must be one finite number, got {params[k]!r}")
-        if name in ("plasticity", "stiffness_region") and float(v) <= 0:
-            raise UserError(f"effect {name!r}: parameter {k!r} must be positive, got {float(v)}")
-        if float(v) < 0:
-            raise UserError(f"effect {name!r}: parameter {k!r} must be 0 or more, got {float(v)}")
-    return params
-
-
-def _vector3(value, key: str) -> np.ndarray:
-    try:
-        v = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        v = None
-    if v is None or v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise UserError(f"scenario key {key!r} must be a finite 3-vector, got {value!r}")
-    return v
-
-
-def _check_material(material: dict) -> tuple[float, float, float]:
-    """(E Pa, ν, ρ kg/m³) of a material dict; a :class:`UserError` for a missing key or a value out of range."""
-    try:
-        E, nu, rho = (float(material[k]) for k in ("E", "nu", "density"))
-    except KeyError as exc:
-        raise UserError(f"material: missing key {exc.args[0]!r} (need 'E' Pa, 'nu', 'density' kg/m³)") from None
-    except (TypeError, ValueError):
-        raise UserError(f"material: 'E', 'nu' and 'density' must be numbers, got {material!r}") from None
-    if not (math.isfinite(E) and E > 0):
-        raise UserError(f"material: 'E' must be a positive number of pascals, got {E}")
-    if not (-1.0 < nu < 0.5):
-        raise UserError(f"material: 'nu' must lie in (-1, 0.5), got {nu}")
-    if not (math.isfinite(rho) and rho > 0):
-        raise UserError(f"material: 'density' must be a positive number of kg/m³, got {rho}")
-    return E, nu, rho
-
-
 class FEMModel:
     """A prepared FEM simulation of one solid in one scenario (see the module docstring).
 
@@ -461,12 +340,20 @@ class FEMModel:
         # stability: largest eigenvalues of M⁻¹K and M⁻¹C at rest
         self.omega_max = self._largest_rate(elastic=True)
         self.gamma_max = self._largest_rate(elastic=False) if self.eta > 0 else 0.0
-        self.hard_contact = self.settings.contact_law == "hard"
+        floor = eff.get("contact_damping")
+        self.floor = None if floor is None or self.ground is None else (float(floor["k"]), float(floor["c"]))
+        self.floor_area = self._footprint() if self.floor is not None else None
+        self.hard_contact = self.settings.contact_law == "hard" and self.floor is None
         self.k_contact = self.settings.contact_stiffness * self.omega_max ** 2
         self.c_contact = 2.0 * self.settings.contact_damping_ratio * math.sqrt(self.k_contact)
         # a node on the ground feels the stiffest element and the contact spring (ω² each) and the contact damper
         penalty = self.ground is not None and not self.hard_contact
-        rate = (math.sqrt(self.omega_max ** 2 + self.k_contact) if penalty else self.omega_max) + self.gamma_max
+        if self.floor is not None:  # the floor's spring and damper per unit node mass
+            k_floor = float(np.max(self.floor[0] * self.floor_area / self.mass))
+            rate = math.sqrt(self.omega_max ** 2 + k_floor) + self.gamma_max + float(
+                np.max(self.floor[1] * self.floor_area / self.mass))
+        else:
+            rate = (math.sqrt(self.omega_max ** 2 + self.k_contact) if penalty else self.omega_max) + self.gamma_max
         rate = max(rate, 1e-9)
         self.dt_max = self.settings.safety * RK4_STABILITY / rate
 
@@ -498,15 +385,28 @@ class FEMModel:
         stacked = np.concatenate([f0[None], f123.transpose(1, 0, 2)], axis=0).reshape(-1, 3)
         return self.G @ stacked
 
+    def _footprint(self) -> np.ndarray:
+        """(n,) m²: the area of the ground each node stands for — every downward-facing boundary triangle's area
+        projected on the horizontal plane, a third to each of its corners (at rest; a node inside has none)."""
+        faces = boundary_faces(self.X, self.T)
+        a, b, c = (self.X[faces[:, i]] for i in range(3))
+        down = np.maximum(-0.5 * np.cross(b - a, c - a)[:, 2], 0.0)  # outward normals: n_z < 0 faces the ground
+        return np.bincount(faces.reshape(-1), np.repeat(down / 3.0, 3), len(self.X))
+
     def contact_forces(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(n, 3) N: the ground's penalty force (normal only, never pulling; zero under the hard law)."""
+        """(n, 3) N: the ground's normal force, never pulling.  With ``contact_damping`` the floor's traction
+        k d − c v_z times each node's footprint (:meth:`_footprint`); else the penalty law's force (zero under
+        the hard law)."""
         f = np.zeros_like(x)
         if self.ground is None or self.hard_contact:
             return f
         depth = self.ground - x[:, 2]
         on = depth > 0
         if np.any(on):
-            fn = self.mass[on] * (self.k_contact * depth[on] - self.c_contact * v[on, 2])
+            if self.floor is not None:
+                fn = self.floor_area[on] * (self.floor[0] * depth[on] - self.floor[1] * v[on, 2])
+            else:
+                fn = self.mass[on] * (self.k_contact * depth[on] - self.c_contact * v[on, 2])
             f[on, 2] = np.maximum(fn, 0.0)
         return f
 

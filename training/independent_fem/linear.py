@@ -23,7 +23,8 @@ import math
 from dataclasses import dataclass
 import numpy as np
 
-from . import TetMesh, _check_material, _cof, _det
+from . import TetMesh, _cof, _det
+from .inputs import _check_material
 
 EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
 """The local edges of a tetrahedron, in the order of the quadratic element's nodes 4..9."""

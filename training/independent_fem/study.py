@@ -51,18 +51,11 @@ def _scenes():
     return _scenes
 
 
-def drop_figures(cells: int, safety: float = 0.25, contact_law: str = "hard", contact_damping_ratio: float = 0.0,
-                 contact_stiffness: float = 1.0, friction: float = 0.0, duration: Optional[float] = None) -> dict:
-    """The canonical drop (0.2 m cube, E, ν, ρ of the scene, lower face 0.1 m above a rigid floor, released at
-    rest, 1 ms frames) on ``cells``³ cells × 6 linear tetrahedra, RK4 at ``safety`` × its stability limit.
-
-    Returns {"rebound_peak": m, peak of the centre of mass after the first contact (the scene's measure: the
-    mean of its 5 × 5 × 5 lattice of tracked points when ``cells`` is a multiple of 4, else the mass centre);
-    "rebound_peak_mass_centre": m; "contact_duration": s, "first_contact": s (the lowest tracked point within
-    the scene's 0.5 mm of the floor); "lowest": m, the lowest node height over the run; "energy_kept": total
-    energy at the end over that at release, measured from rest on the floor; "nodes", "tets", "dt": s,
-    "steps", "wall_s"}.  ``friction`` is a Coulomb μ (0: the scene's frictionless floor).
-    """
+def _drop(cells: int, safety: float = 0.25, contact_law: str = "hard", contact_damping_ratio: float = 0.0,
+          contact_stiffness: float = 1.0, friction: float = 0.0, duration: Optional[float] = None,
+          floor: Optional[tuple[float, float]] = None) -> dict:
+    """Run the canonical drop (arguments: :func:`drop_figures`); {"model", "mesh", "frames" (F,) s, "x" (F, n, 3) m,
+    "com" (F,) m: the measured centre's height, "lowest" (F,) m, "mass_centre" (F,) m, "on_lattice", "wall_s"}."""
     sc = _scenes()
     if cells < 1:
         raise UserError(f"cells must be 1 or more, got {cells}")
@@ -71,6 +64,8 @@ def drop_figures(cells: int, safety: float = 0.25, contact_law: str = "hard", co
     material = {"E": sc.CUBE_E, "nu": sc.CUBE_NU, "density": sc.CUBE_DENSITY}
     scenario = {"gravity": [0.0, 0.0, -sc.G], "ground": {"height": 0.0}, "initial_velocity": [0.0, 0.0, 0.0]}
     effects = [f"ground_friction:mu={friction}"] if friction > 0 else []
+    if floor is not None:
+        effects.append(f"contact_damping:k={floor[0]},c={floor[1]}")
     settings = FEMSettings(safety=safety, contact_law=contact_law, contact_damping_ratio=contact_damping_ratio,
                            contact_stiffness=contact_stiffness)
     model = FEMModel(mesh, material, scenario, effects, settings)
@@ -85,8 +80,40 @@ def drop_figures(cells: int, safety: float = 0.25, contact_law: str = "hard", co
     lattice = sc.lattice(mesh.nodes.min(0), mesh.nodes.max(0), (5, 5, 5))
     dist, idx = _nearest(mesh.nodes, lattice)
     on_lattice = bool(np.all(dist < 1e-9 * s))
-    com = z[:, idx].mean(1) if on_lattice else mass_centre
-    lowest = z[:, idx].min(1) if on_lattice else z.min(1)
+    return {"model": model, "mesh": mesh, "frames": frames, "x": x, "mass_centre": mass_centre,
+            "com": z[:, idx].mean(1) if on_lattice else mass_centre, "lowest": z[:, idx].min(1) if on_lattice else z.min(1),
+            "on_lattice": on_lattice, "wall_s": wall}
+
+
+def drop_centre(cells: int, duration: Optional[float] = None, floor: Optional[tuple[float, float]] = None,
+                **settings) -> tuple[np.ndarray, np.ndarray]:
+    """(centre (F,) m, frames (F,) s): the measured centre's height over the canonical drop at 1 ms frames (the
+    scene's 5 × 5 × 5 lattice mean when ``cells`` is a multiple of 4); arguments as :func:`drop_figures`."""
+    run = _drop(cells, duration=duration, floor=floor, **settings)
+    return run["com"], run["frames"]
+
+
+def drop_figures(cells: int, safety: float = 0.25, contact_law: str = "hard", contact_damping_ratio: float = 0.0,
+                 contact_stiffness: float = 1.0, friction: float = 0.0, duration: Optional[float] = None,
+                 floor: Optional[tuple[float, float]] = None) -> dict:
+    """The canonical drop (0.2 m cube, E, ν, ρ of the scene, lower face 0.1 m above a rigid floor, released at
+    rest, 1 ms frames) on ``cells``³ cells × 6 linear tetrahedra, RK4 at ``safety`` × its stability limit.
+
+    Returns {"rebound_peak": m, peak of the centre of mass after the first contact (the scene's measure: the
+    mean of its 5 × 5 × 5 lattice of tracked points when ``cells`` is a multiple of 4, else the mass centre);
+    "rebound_peak_mass_centre": m; "contact_duration": s, "first_contact": s (the lowest tracked point within
+    the scene's 0.5 mm of the floor); "lowest": m, the lowest node height over the run; "energy_kept": total
+    energy at the end over that at release, measured from rest on the floor; "nodes", "tets", "dt": s,
+    "steps", "wall_s"}.  ``friction`` is a Coulomb μ (0: the scene's frictionless floor); ``floor`` = (k Pa/m, c Pa·s/m) makes the
+    floor give and damp (the ``contact_damping`` effect; the contact law is then not used).
+    """
+    sc = _scenes()
+    s = sc.CUBE_SIZE
+    run = _drop(cells, safety, contact_law, contact_damping_ratio, contact_stiffness, friction, duration, floor)
+    model, mesh, frames, x = run["model"], run["mesh"], run["frames"], run["x"]
+    com, lowest, mass_centre, on_lattice, wall = (run[k] for k in ("com", "lowest", "mass_centre", "on_lattice",
+                                                                   "wall_s"))
+    z = x[:, :, 2]
     first, last = sc.contact_interval(frames, lowest)
     after = frames > last
     peak = float(com[after].max()) if np.isfinite(last) and after.any() else math.nan
