@@ -19,7 +19,8 @@ from . import significance as sig
 from .compare import noise_rmse
 from .fit import FitResult, Parametrisation, free_params_for, grid_search, levenberg_marquardt
 from .problem import Problem, Reference, Scales
-from .results import finite_or_none
+from .results import json_float
+
 
 def fit_base(P: Problem, param: Parametrisation, lm_iterations: int, progress: Progress,
               start: Optional[np.ndarray] = None) -> tuple[FitResult, np.ndarray]:
@@ -145,6 +146,7 @@ def base_material_check(P: Problem, ref: Reference, material, sigma: float, lm_i
             "E_over_density_stated": E_stated / material.mean_density(),
             "E_over_density_fitted": E_stated * ref.scale / material.mean_density(),
             "rmse_stated_E": math.sqrt(sse_stated / P.n_obs), "rmse_fitted_E": math.sqrt(ref.sse / P.n_obs),
-            "likelihood_ratio": finite_or_none(lr), "threshold": finite_or_none(thr), "share_of_excess": finite_or_none(share),
-            "likelihood_ratio_deformation": finite_or_none(lr_def), "share_of_excess_deformation": finite_or_none(share_def),
+            "likelihood_ratio": json_float(lr), "threshold": json_float(thr), "share_of_excess": json_float(share),
+            "likelihood_ratio_deformation": json_float(lr_def),
+            "share_of_excess_deformation": json_float(share_def),
             "looks_wrong": looks_wrong, "note": note}

@@ -21,7 +21,7 @@ from . import significance as sig
 from .fit import BASE, FitResult, Parametrisation, levenberg_marquardt, uncertainty
 from .problem import Problem, Reference, param_for
 from .resolution import half_step_settings
-from .results import CandidateResult, finite_or_none
+from .results import CandidateResult, json_float
 
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
 """Effects re-checked at half the time step (numerical dissipation looks like them)."""
@@ -53,7 +53,7 @@ def judge(P: Problem, ref: Reference, cands: Sequence[CandidateResult], sse_base
         s2 = max(sigma ** 2, c.sse / max(P.obs.sum() * 3 - len(c.free_params), 1))
         if c.fit is not None:
             unc = uncertainty(c.fit, c.free_params, s2)
-            c.uncertainty = {p.label: finite_or_none(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
+            c.uncertainty = {p.label: json_float(u) for p, u in zip(c.free_params, unc) if p.slot != BASE}
 
 
 def check_leading(P: Problem, ref: Reference, cands: Sequence[CandidateResult], sigma: float, *, holdout: bool,

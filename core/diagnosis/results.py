@@ -73,12 +73,13 @@ class CandidateResult:
         return self.effect.params_dict() if self.effect is not None else {}
 
     def to_dict(self) -> dict:
-        d = {"effect": self.name, "params": self.params(), "rmse": finite_or_none(self.rmse), "explained": finite_or_none(self.explained),
-             "significant": bool(self.significant),
-             "explained_beyond_base": finite_or_none(self.explained_beyond_base), "E_scale": finite_or_none(self.E_scale),
-             "likelihood_ratio": finite_or_none(self.lr), "threshold": finite_or_none(self.threshold), "share_of_excess": finite_or_none(self.share),
+        d = {"effect": self.name, "params": self.params(), "rmse": json_float(self.rmse),
+             "explained": json_float(self.explained), "significant": bool(self.significant),
+             "explained_beyond_base": json_float(self.explained_beyond_base), "E_scale": json_float(self.E_scale),
+             "likelihood_ratio": json_float(self.lr), "threshold": json_float(self.threshold),
+             "share_of_excess": json_float(self.share),
              "uncertainty": self.uncertainty, "reasons": list(self.reasons), "simulations": self.evaluations,
-             "seconds": finite_or_none(self.seconds)}
+             "seconds": json_float(self.seconds)}
         if self.holdout is not None:
             d["holdout"] = self.holdout
         if self.dt_check is not None:
@@ -104,7 +105,7 @@ class Round:
 
     def to_dict(self) -> dict:
         return {"effects": [e.name for e in self.effects], "effect_params": [e.to_dict() for e in self.effects],
-                "E_scale": finite_or_none(self.E_scale), "rmse": finite_or_none(self.rmse),
+                "E_scale": json_float(self.E_scale), "rmse": json_float(self.rmse),
                 "candidates": [c.to_dict() for c in self.candidates], "identified": self.identified,
                 "added": None if self.added is None else self.added.to_dict(), "added_by": self.added_by,
                 "not_applicable": dict(self.not_applicable)}
@@ -159,8 +160,8 @@ class Diagnosis:
         if len(c) < 2:
             return None
         gap = (c[1].sse - c[0].sse) / max(self.noise_sigma ** 2, 1e-300)
-        return {"effect": c[1].name, "rmse": finite_or_none(c[1].rmse), "gap_likelihood_ratio": finite_or_none(gap),
-                "rmse_ratio": finite_or_none(c[1].rmse / max(c[0].rmse, 1e-300))}
+        return {"effect": c[1].name, "rmse": json_float(c[1].rmse), "gap_likelihood_ratio": json_float(gap),
+                "rmse_ratio": json_float(c[1].rmse / max(c[0].rmse, 1e-300))}
 
     def to_json(self) -> dict:
         """The ``unipixie.diagnosis/1`` report: the spec's keys plus extras."""
@@ -169,23 +170,23 @@ class Diagnosis:
             "format": REPORT_FORMAT,
             "solver": self.solver,
             "baseline": self.baseline.to_dict(),
-            "candidates": [{"effect": c.name, "params": c.params(), "rmse": finite_or_none(c.rmse), "explained": finite_or_none(c.explained),
-                            "significant": bool(c.significant), **{k: v for k, v in c.to_dict().items()
-                                                                    if k not in ("effect", "params", "rmse",
-                                                                                 "explained", "significant")}}
+            "candidates": [{"effect": c.name, "params": c.params(), "rmse": json_float(c.rmse),
+                            "explained": json_float(c.explained), "significant": bool(c.significant),
+                            **{k: v for k, v in c.to_dict().items()
+                               if k not in ("effect", "params", "rmse", "explained", "significant")}}
                            for c in (first.candidates if first else [])],
             "identified": self.identified,
             "history": self.history,
             # extras
             "verdict": self.verdict or verdict_mod.for_diagnosis(self),
             "measurement": self.measurement_source,
-            "noise_sigma": finite_or_none(self.noise_sigma),
-            "noise_rmse": finite_or_none(self.noise_rmse),
+            "noise_sigma": json_float(self.noise_sigma),
+            "noise_rmse": json_float(self.noise_rmse),
             "runner_up": self.runner_up(),
             "base_material": self.base_material,
             "effects_on": [e.to_dict() for e in self.effects_on],
             "added": [e.to_dict() for e in self.added],
-            "final": {"rmse": finite_or_none(self.final.rmse), "E_scale": finite_or_none(self.E_scale),
+            "final": {"rmse": json_float(self.final.rmse), "E_scale": json_float(self.E_scale),
                       "worst_points": self.final.worst_points, "worst_times": self.final.worst_times},
             "rounds": [r.to_dict() for r in self.rounds],
             "not_applicable": first.not_applicable if first else {},
@@ -198,8 +199,8 @@ class Diagnosis:
             "contact_times": self.contact_times,
             "base_contact": self.base_contact,
             "resolution": self.resolution,
-            "predictive_until": finite_or_none(self.horizon),
-            "wall_s": finite_or_none(self.wall_s),
+            "predictive_until": json_float(self.horizon),
+            "wall_s": json_float(self.wall_s),
             "simulations": int(self.simulations),
             "warnings": list(self.warnings),
             "settings": self.settings,
@@ -230,7 +231,7 @@ class Diagnosis:
         return "\n".join(lines)
 
 
-def finite_or_none(x):
+def json_float(x):
     """``x`` as a float for the JSON report, ``None`` for ``None``, NaN or ±inf."""
     if x is None:
         return None
