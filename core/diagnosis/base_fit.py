@@ -23,7 +23,7 @@ from .results import json_float
 
 
 def fit_base(P: Problem, param: Parametrisation, lm_iterations: int, progress: Progress,
-              start: Optional[np.ndarray] = None) -> tuple[FitResult, np.ndarray]:
+             start: Optional[np.ndarray] = None) -> tuple[FitResult, np.ndarray]:
     """Fit the E/ρ scale alone; returns the fit and the full residual at its optimum.
 
     Two stages.  E/ρ acts on the motion through deformation, so it is first fitted to the *deformation*
@@ -106,7 +106,7 @@ def find_predictive_window(P: Problem, ref: Reference, sigma: float, sc: Scales)
 
 
 def base_material_check(P: Problem, ref: Reference, material, sigma: float, lm_iterations: int,
-                         progress: Progress, plans: dict) -> dict:
+                        progress: Progress, plans: dict) -> dict:
     """Is E/ρ (with the effects found) significantly different from the stated value?"""
     note = ("under gravity and inertia alone the motion depends on E/ρ only: E and density cannot both be "
             "fitted, so the scale applies to E at the stated density (equivalently to 1/ρ)")

@@ -194,7 +194,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     sse_baseline = P.rmse_all(base_pos)[0]
     say("1. the model as given: " + baseline.describe(noise_rmse(sigma)).replace("\n", "\n   "))
 
-    # ---- 2. base fit: E/ρ, several starts -----------------------------------------------------
+    # ---- 2. base fit: E/ρ, several starts (base_fit.py) -----------------------------------------
     progress.set_status("fitting the base material (E/ρ)")
     e_width = e_prior_width(P.n_obs)
     base_fit_param = Parametrisation([], [base_param(*BASE_SCALE_BOUNDS, prior_width=e_width)], list(effects_on), 1.0)
@@ -233,7 +233,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         P.sim, settings = finer_sim, finer_sim.settings
         bf, full_residual = fit_base(P, base_fit_param, lm_iterations, progress, start=np.array([math.log(ref.scale)]))
         ref = Reference(float(math.exp(bf.u[0])), [], P.sse(full_residual), full_residual[:P.size],
-                         list(effects_on), e_width)
+                        list(effects_on), e_width)
 
     # ---- 2c. ground contact, part of the base (contact_fit.py) --------------------------------------
     contact = fit_base_contact(P, measurement, material, ref.scale, e_width, ref.sse, names, lm_iterations, progress,
@@ -241,7 +241,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     if contact.adopted:
         ref = Reference(contact.E_scale, [], contact.sse, contact.residual, list(effects_on), e_width)
 
-    # ---- 3.-6. rounds ---------------------------------------------------------------------------
+    # ---- 3.-6. rounds: candidates (candidates.py), their significance (checks.py) ---------------------
     rounds: list[Round] = []
     history = [{"effects": [e.name for e in effects_on], "rmse": float(baseline.rmse), "E_scale": 1.0}]
     history_positions = [base_pos]
@@ -303,7 +303,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         added.append(choice.effect)
         ref = Reference(choice.E_scale, list(choice.effects), choice.sse, choice.residual,
                          [e for e in ref.fixed if e.name != choice.name or e.name == "stiffness_region"],
-                         ref.prior_width)
+                        ref.prior_width)
         pos = P.positions_for(ref.scale, ref.effects, ref.fixed)
         history_positions.append(pos)
         history.append({"effects": [e.name for e in ref.fixed] + [e.name for e in ref.effects],
@@ -315,7 +315,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             say(f"   stopping after {len(added)} addition(s) (max_additions)")
             break
 
-    # ---- 7. base material on its own --------------------------------------------------------------
+    # ---- 7. base material on its own (base_fit.py) ------------------------------------------------
     progress.set_status("checking the base material")
     base_material = base_material_check(P, ref, material, sigma, lm_iterations, progress, plans)
     if base_material.get("looks_wrong"):

@@ -239,7 +239,7 @@ class Reference:
 
 
 def param_for(ref: Reference, extra: Sequence[fx.Effect], plans: dict,
-               fixed: Optional[list] = None) -> Parametrisation:
+              fixed: Optional[list] = None) -> Parametrisation:
     effects = list(ref.effects) + list(extra)
     params: list[FreeParam] = [base_param(*BASE_SCALE_BOUNDS, center=ref.scale, prior_width=ref.prior_width)]
     for i, e in enumerate(effects):

@@ -211,7 +211,7 @@ def _snow_pile(rng, variant):
         rr = rng.uniform(0.2, 0.6) * R
         cr = rng.uniform(0.1, 0.18) * R
         ice.append(blob([rr * np.cos(a), rr * np.sin(a), max(0.6 * h * (1 - (rr / R) ** 2), cr)], [cr, 0.8 * cr, 0.7 * cr],
-                         rng, 0.2, 1))
+                        rng, 0.2, 1))
     return {"snow": [snow], "ice": ice}
 
 
