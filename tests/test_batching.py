@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from unipixie.core.diagnosis import diagnose, synth
+from unipixie.core.diagnosis import diagnose, resolution, synth
 from unipixie.core.diagnosis.batching import BatchGate
 from unipixie.core.errors import CancelledError
 
@@ -124,11 +124,11 @@ def test_half_step_settings_halve_every_limit_of_the_step():
 
     from unipixie.solvers import mpm, spring_mass
 
-    half = diagnose.half_step_settings(SimpleNamespace(settings=mpm.MPMSettings(cfl=0.4, viscous_cfl=0.2)), None)
+    half = resolution.half_step_settings(SimpleNamespace(settings=mpm.MPMSettings(cfl=0.4, viscous_cfl=0.2)), None)
     assert (half.cfl, half.viscous_cfl) == (0.2, 0.1)
-    half = diagnose.half_step_settings(SimpleNamespace(settings=spring_mass.SpringMassSettings(safety=0.7)), None)
+    half = resolution.half_step_settings(SimpleNamespace(settings=spring_mass.SpringMassSettings(safety=0.7)), None)
     assert half.safety == 0.35
-    assert diagnose.half_step_settings(SimpleNamespace(settings=None), None) is None
+    assert resolution.half_step_settings(SimpleNamespace(settings=None), None) is None
 
 
 def test_levenberg_marquardt_lookahead_gives_the_same_iterates_in_fewer_batches():

@@ -86,7 +86,7 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
 
 
 def test_demo_command_errors_are_one_line(tmp_path, monkeypatch, capsys, tiny_checkpoint):
-    from unipixie.core import pipeline
+    from unipixie.core.pipeline import checkpoint as pipeline
     from unipixie.cli import main
 
     monkeypatch.setattr(pipeline, "default_checkpoint", lambda: tmp_path / "models" / "default")

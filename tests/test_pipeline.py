@@ -161,7 +161,7 @@ def test_prediction_at_chosen_alphas_is_one_pass_cached_and_matches_the_sweep(ti
 def test_checkpoint_resolution_and_clear_messages(tmp_path, tiny_checkpoint, monkeypatch):
     assert core.resolve_checkpoint(tiny_checkpoint) == tiny_checkpoint
     assert core.resolve_checkpoint(tiny_checkpoint / "model.safetensors") == tiny_checkpoint
-    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    monkeypatch.setattr(core.checkpoint, "default_checkpoint", lambda: tmp_path / "models" / "default")
     with pytest.raises(UserError, match="default model is not installed.*Model checkpoint"):
         core.resolve_checkpoint(None)
     with pytest.raises(UserError, match="does not exist"):
@@ -174,8 +174,8 @@ def test_checkpoint_resolution_and_clear_messages(tmp_path, tiny_checkpoint, mon
 
 def test_check_settings_names_each_problem(tmp_path, tiny_checkpoint, monkeypatch):
     assert core.check_settings(checkpoint=str(tiny_checkpoint), cache_dir=str(tmp_path)) == []
-    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
-    monkeypatch.setattr(core, "cuda_available", lambda: False)
+    monkeypatch.setattr(core.checkpoint, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    monkeypatch.setattr(core.settings, "cuda_available", lambda: False)
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     problems = core.check_settings(checkpoint="", clip_weights=str(tmp_path / "no_clip"), cache_dir=str(a_file),
@@ -261,7 +261,7 @@ def test_closing_a_background_job_cancels_its_worker():
             progress.step(1, f"step {i}")
         seen.append("finished")
 
-    job = core._background(work, "test")
+    job = core.jobs._background(work, "test")
     next(job)
     next(job)
     job.close()     # Esc: the worker is cancelled at its next step and joined
@@ -271,7 +271,7 @@ def test_closing_a_background_job_cancels_its_worker():
 
 
 def test_predict_job_refuses_a_missing_model_before_working(tmp_path, blob_grid, monkeypatch):
-    monkeypatch.setattr(core, "default_checkpoint", lambda: tmp_path / "models" / "default")
+    monkeypatch.setattr(core.checkpoint, "default_checkpoint", lambda: tmp_path / "models" / "default")
     with pytest.raises(UserError, match="default model is not installed"):
         next(core.predict_job(blob_grid, core.PipelineSettings()))
 

@@ -107,7 +107,8 @@ def _f(x):
 
 def fit_contact(P, scale: float, e_prior_width: float, sse_rigid: float, material, height: float,
                 lm_iterations: int, progress: Progress) -> ContactFit:
-    """Fit the ground's (c, k) together with the E/ρ scale on the diagnosis problem ``P`` (its ``_Problem``).
+    """Fit the ground's (c, k) together with the E/ρ scale on the diagnosis problem ``P``
+    (a :class:`.problem.Problem`).
 
     scale: the E/ρ scale of the rigid-floor base fit (a start besides the stated E, which is the centre of its
     prior of width ``e_prior_width``); sse_rigid: that fit's squared error (m²); material: the stated material (mean E and

@@ -159,7 +159,7 @@ def check_resolution(P, model_effects: list, prepare, sigma: float, remaining_ru
                      budget_s: float = DEFAULT_BUDGET_S, say=None) -> tuple[ResolutionCheck, Optional[object]]:
     """Re-run the fitted base model finer and decide (module docstring).
 
-    P: the diagnosis problem (its ``_Problem``: ``sim``, ``run``, observed mask, measured positions);
+    P: the diagnosis problem (its :class:`.problem.Problem`: ``sim``, ``run``, observed mask, measured positions);
     model_effects: the fitted base model's effect list (``P.model_effects(...)``); prepare: settings → a prepared
     simulation of the same scene; sigma: noise σ (m); remaining_runs: simulations the diagnosis still expects.
     Returns (check, the finer simulation when the diagnosis should use it, else ``None``).

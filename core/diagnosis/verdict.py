@@ -98,7 +98,7 @@ def where_it_differs(comparison, contact_times: Sequence[float] = ()) -> str:
 
 
 def for_diagnosis(d) -> dict:
-    """The verdict of a :class:`~unipixie.core.diagnosis.diagnose.Diagnosis` (its best model: the smallest
+    """The verdict of a :class:`~unipixie.core.diagnosis.results.Diagnosis` (its best model: the smallest
     RMSE among the model as given, every candidate of every round and every addition)."""
     rmses = [d.final.rmse, d.baseline.rmse] + [h.get("rmse", math.inf) for h in d.history]
     for rnd in d.rounds:
