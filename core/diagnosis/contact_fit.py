@@ -140,8 +140,17 @@ def fit_contact(P, scale: float, e_prior_width: float, sse_rigid: float, materia
     lo, hi = param.bounds()
     starts = [np.clip(u, lo, hi) for u in starts]
     best, costs, res = grid_search(fn, starts)
-    fit: FitResult = levenberg_marquardt(fn, starts[best], lo, hi, param.steps(), r0=res[best],
-                                         max_iter=2 * lm_iterations, progress=progress)
+    # descend from the best starts of two different floors and keep the better end: near critical damping k is
+    # weakly determined and one descent can stop in a false minimum (measured: the drop with c = 3e4, k = 1e6 on a
+    # 96-anchor network stopped at k = 5.7e5, RMSE 1.88 mm for a noise floor of 1.73 mm)
+    order = [int(i) for i in np.argsort(costs) if np.isfinite(costs[i])]
+    second = next((i for i in order if starts[i][2] != starts[best][2]), None)
+    fit: Optional[FitResult] = None
+    for i in [best] + ([second] if second is not None else []):
+        trial = levenberg_marquardt(fn, starts[i], lo, hi, param.steps(), r0=res[i],
+                                    max_iter=2 * lm_iterations, progress=progress)
+        if fit is None or trial.cost < fit.cost:
+            fit = trial
     E_scale, effs = param.realise(fit.u)
     sse = P.sse(fit.residual)
     out = ContactFit(effect=effs[0], E_scale=float(E_scale), sse=sse, residual=np.asarray(fit.residual)[:P.size],
