@@ -105,6 +105,21 @@ class MeasuredMaterial:
         return out
 
 
+COORDINATE_LIMIT = 1e10
+"""Metres: no coordinate of a tracked point may be farther from the origin than this (about 70 times the distance
+to the Sun).  Beyond it the value is a sentinel or a unit mistake, and the arithmetic of differences and squares
+(noise estimate, errors) loses every digit of the motion or overflows."""
+
+
+def _check_magnitude(values: np.ndarray, key: str, src: str) -> None:
+    with np.errstate(invalid="ignore"):
+        biggest = float(np.nanmax(np.abs(values)))
+    if biggest > COORDINATE_LIMIT:
+        raise _fail(src, f"key '{key}' holds a coordinate of {biggest:.3g} m, beyond {COORDINATE_LIMIT:.0e} m from the "
+                         "origin: positions are metres — this is a sentinel value (mark unobserved samples with NaN, "
+                         "an empty CSV cell) or a unit mistake")
+
+
 def _check_material_values(E, nu, density, where: str) -> None:
     E = np.asarray(E, dtype=np.float64)
     nu = np.asarray(nu, dtype=np.float64)
@@ -161,6 +176,7 @@ class Measurement:
         if np.isnan(pos).all():
             raise _fail(src, "key 'positions' holds no observed sample (every value is NaN): there is no measured "
                              "motion to read")
+        _check_magnitude(pos, "positions", src)
         self.positions = pos
         # times ---------------------------------------------------------------------------
         t = _float_array(self.times, "times", src).reshape(-1) if np.ndim(self.times) <= 1 else None
@@ -185,6 +201,7 @@ class Measurement:
                 raise _fail(src, f"key 'rest_positions' must have shape ({N}, 3) to match 'positions', got {rest.shape}")
             if not np.all(np.isfinite(rest)):
                 raise _fail(src, "key 'rest_positions' contains NaN or infinite values")
+            _check_magnitude(rest, "rest_positions", src)
             self.rest_positions = rest
         elif np.isnan(pos[0]).any():
             missing = np.isnan(pos[0, :, 0])
@@ -475,6 +492,38 @@ def _scenario_from_dict(d: dict, src: str):
     return scenario, material
 
 
+MATERIAL_KEYS = ("E", "nu", "density", "class", "material")
+"""The keys scenario key ``material`` may hold (``class`` / ``material``: the material class's name)."""
+
+
+def scenario_key_warnings(d: dict) -> list[str]:
+    """Warnings for scenario keys that look like misspellings of the format's own keys.
+
+    The format keeps unknown keys and ignores them (``shared/specs/measurement-format.md`` §1), so a typo such
+    as ``initial_velocty`` would silently leave the solid at rest; a key within a close spelling of a known one
+    (``difflib``, ratio ≥ 0.8) is named with the key it probably meant.  Keys far from every known one (the
+    user's own annotations) pass without a word.
+    """
+    import difflib
+
+    from ..solvers.scenario import SCENARIO_KEYS
+
+    out = []
+    known_top = tuple(SCENARIO_KEYS) + (CSV_SIDECAR_KEY,)
+    nested = [("", d, known_top)]
+    if isinstance(d.get("material"), Mapping):
+        nested.append(("material.", d["material"], MATERIAL_KEYS))
+    for prefix, mapping, known in nested:
+        for key in mapping:
+            if key in known or not isinstance(key, str):
+                continue
+            close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+            if close:
+                out.append(f"scenario key '{prefix}{key}' is not part of the format and is ignored — did you mean "
+                           f"'{prefix}{close[0]}'?")
+    return out
+
+
 def _atomic_savez(path: Path, arrays: dict) -> None:
     from .atomic_io import save_npz
 
@@ -526,9 +575,11 @@ def load_npz(path) -> Measurement:
         material = MeasuredMaterial(*(per_point[k].astype(np.float64) if k in per_point else getattr(base, k)
                                       for k in ("E", "nu", "density")), base.material_class)
     extras = {k: v for k, v in data.items() if k not in REQUIRED_KEYS + OPTIONAL_KEYS}
-    return Measurement(positions=positions, times=data["times"], scenario=scenario,
-                       rest_positions=data.get("rest_positions"), faces=data.get("faces"), material=material,
-                       extra_arrays=extras, source=src)
+    m = Measurement(positions=positions, times=data["times"], scenario=scenario,
+                    rest_positions=data.get("rest_positions"), faces=data.get("faces"), material=material,
+                    extra_arrays=extras, source=src)
+    m.warnings.extend(scenario_key_warnings(sdict))
+    return m
 
 
 def _csv_columns(row: list, src: str, lineno: int) -> Optional[dict]:
@@ -742,7 +793,7 @@ def load_csv(path, scenario=None, rest_positions=None, faces=None) -> Measuremen
         material = MeasuredMaterial(*vals, base.material_class)
     m = Measurement(positions=positions, times=times, scenario=sc, rest_positions=rest_positions, faces=faces,
                     material=material, source=src)
-    m.warnings.extend(warnings)
+    m.warnings.extend(warnings + scenario_key_warnings(sdict))
     if keys != [str(i) for i in range(len(keys))]:  # ids 0..N-1 are the positions themselves: nothing to keep
         m.extra_arrays["point_ids"] = np.asarray(keys)
     return m

@@ -14,7 +14,10 @@ import numpy as np
 from ..core.errors import UserError
 
 SCENARIO_FORMAT = "unipixie.measurement/1"
-_KNOWN = {"format", "gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box", "material", "notes"}
+SCENARIO_KEYS = ("format", "gravity", "ground", "initial_velocity", "initial_angular_velocity", "pinned_box", "material",
+                 "notes")
+"""The scenario JSON's own keys (``shared/specs/measurement-format.md`` §1); others are kept and ignored."""
+_KNOWN = frozenset(SCENARIO_KEYS)
 
 
 def require_json_numbers(value, what: str) -> None:

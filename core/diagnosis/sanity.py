@@ -24,6 +24,15 @@ Checks (σ is the noise estimated from the tracks, ``size`` the rest shape's lar
   steps of 1 are named frame numbers.
 * **gravity** — ``|g|`` above :data:`GRAVITY_REFUSE` (100 g) is a unit mistake (mm/s²) and refused; above
   :data:`GRAVITY_WARN` a warning (no planet's).
+* **material** — a stated density above :data:`DENSITY_REFUSE` (denser than any solid) or E above
+  :data:`E_REFUSE` (stiffer than diamond) is refused as a unit mistake; a density below :data:`DENSITY_WARN`
+  (g/cm³ for kg/m³?) or E below :data:`E_WARN` (MPa for Pa?) is a warning.
+* **gravity's sign** — with a ground, gravity must not point away from it (positive z) while the measured solid
+  touches the ground (within the ground tolerance above): the solid would be pulled off the ground it is seen
+  resting on or striking; a wind or drag would then be "found" to undo the wrong sign.
+* **initial motion** — the stated initial velocity (and spin, at the solid's size) must not carry the solid
+  farther than :data:`REACH_FACTOR` times the farthest any tracked point moves, even under a deceleration of
+  :data:`STOPPING_DECELERATION` (friction, drag and impacts together): such a velocity is a unit mistake (mm/s).
 * **cost** — :mod:`unipixie.core.cost`: the whole diagnosis (about :data:`DIAGNOSIS_SIMULATIONS`
   simulations) must stay below the long-job limit unless ``allow_long``.
 
@@ -60,6 +69,17 @@ GRAVITY_REFUSE = 1000.0
 """m/s²: a stated gravity stronger than this (about 100 g) is refused as a unit mistake (9810 mm/s² for 9.81 m/s²)."""
 GRAVITY_WARN = 30.0
 """m/s²: a stated gravity stronger than this (about 3 g, more than any planet's surface but Jupiter's 25) is a warning."""
+DENSITY_REFUSE = 1e5
+"""kg/m³: a stated density above this (4× osmium's 22 590) is refused: no solid is that dense."""
+DENSITY_WARN = 10.0
+"""kg/m³: a stated density below this (lighter than any solid but aerogels) is a warning: g/cm³ for kg/m³?"""
+E_REFUSE = 1e13
+"""Pa: a stated Young's modulus above this (8× diamond's 1.2e12) is refused: no solid is that stiff."""
+E_WARN = 10.0
+"""Pa: a stated Young's modulus below this (softer than the softest gels) is a warning: MPa or kPa for Pa?"""
+STOPPING_DECELERATION = 1000.0
+"""m/s²: the strongest deceleration the initial-motion check grants the scene (about 100 g: friction, drag and
+impacts together; a 20 m/s throw into the ground may stop in 0.2 m, a 3e8 m/s one cannot stop in a lab)."""
 DIAGNOSIS_SIMULATIONS = 300
 """About how many simulations a diagnosis runs (measured: ~275 for the MPM benchmark diagnosis)."""
 
@@ -116,6 +136,24 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
         warnings.append(f"gravity is {g:.4g} m/s² ({g / 9.81:.3g} g), stronger than any planet's surface: is scenario "
                         "key 'gravity' in m/s²?")
 
+    # ---- material: pascals and kilograms per cubic metre -------------------------------------------
+    material = measurement.material
+    if material is not None:
+        rho = np.asarray(material.density, dtype=np.float64)
+        E = np.asarray(material.E, dtype=np.float64)
+        if float(rho.max()) > DENSITY_REFUSE:
+            raise UserError(f"{src}the stated density is {float(rho.max()):.3g} kg/m³, denser than any solid (osmium: "
+                            "22 590 kg/m³): the scenario's material must be in kg/m³ (water 1000)")
+        if float(E.max()) > E_REFUSE:
+            raise UserError(f"{src}the stated Young's modulus is {float(E.max()):.3g} Pa, stiffer than any solid "
+                            "(diamond: 1.2e12 Pa): the scenario's material must be in pascals (steel 2e11)")
+        if float(rho.min()) < DENSITY_WARN:
+            warnings.append(f"the stated density is {float(rho.min()):.3g} kg/m³, lighter than any solid but "
+                            "aerogels: is it in kg/m³ (1000 for water, not 1 g/cm³)?")
+        if float(E.min()) < E_WARN:
+            warnings.append(f"the stated Young's modulus is {float(E.min()):.3g} Pa, softer than the softest gels: "
+                            "is it in pascals (not kPa or MPa)?")
+
     # ---- reach: no point can be farther from rest than the scenario allows -----------------------
     duration = float(times[-1] - times[0]) if len(times) > 1 else 0.0
     v0 = float(np.linalg.norm(sc.initial_velocity))
@@ -130,6 +168,19 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
                         f"({far} sample(s) beyond {reach:.3g} m, ten times what the scenario's size, initial motion and "
                         "gravity can explain over the measurement): a unit mistake or a sentinel value for 'not "
                         "observed' — mark unobserved samples with NaN (an empty CSV cell)")
+
+    # ---- initial motion: a stated velocity the measured solid never shows ------------------------------
+    moved = float(disp.max()) if disp.size else 0.0
+    speed = v0 + w0 * 0.5 * size
+    if speed > 0.0 and duration > 0.0:
+        a = STOPPING_DECELERATION
+        stop_time = speed / a
+        travel = speed ** 2 / (2 * a) if stop_time <= duration else speed * duration - 0.5 * a * duration ** 2
+        if travel > REACH_FACTOR * (moved + size):
+            raise UserError(f"{src}the stated initial motion ({v0:.3g} m/s, spin {w0:.3g} rad/s) would carry the solid "
+                            f"at least {travel:.3g} m even under a deceleration of {a:g} m/s², but no tracked point "
+                            f"moves more than {moved:.3g} m: scenario keys 'initial_velocity' (m/s) and "
+                            "'initial_angular_velocity' (rad/s) must be in SI units (mm/s ÷ 1000, degrees/s × π/180)")
 
     # ---- time unit ------------------------------------------------------------------------------
     if len(times) > 1:
@@ -168,6 +219,14 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
                             "it, so the ground is not where the scenario says. Fix scenario key 'ground' or set it "
                             "to null")
 
+        # gravity's sign: pulled off the ground the solid is seen touching
+        gvec = np.asarray(sc.gravity, dtype=np.float64)
+        touching = bool(np.any(z < h + tol))
+        if g > 0 and float(gvec[2]) > 0.0 and touching:
+            raise UserError(f"{src}scenario key 'gravity' {list(map(float, gvec))} points up, away from the ground "
+                            f"(z = {h:g} m), yet the measured solid touches the ground: gravity pulls towards the "
+                            "ground below the solid (z is up), e.g. [0, 0, -9.81]; or set 'ground' to null")
+
     # ---- clamp -----------------------------------------------------------------------------------
     if sc.pinned_box is not None:
         pinned = sc.pinned_mask(rest)
@@ -189,7 +248,6 @@ def check(measurement, solver: str, settings=None, *, sigma: Optional[float] = N
                                 f"(median), {moved / sigma:.3g}× the noise σ: is the clamp box right?")
 
     # ---- cost ------------------------------------------------------------------------------------
-    material = measurement.material
     if estimate_cost and material is not None and len(times) > 1:
         from ..cost import estimate
 
