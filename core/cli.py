@@ -111,11 +111,34 @@ def _argv_from_environment() -> list[str]:
     return argv[1:]
 
 
+def empty_argument(argv: Sequence[str]) -> str | None:
+    """The first empty (or blank) value on a command line, as the user would read it (``--out ''``), or ``None``.
+
+    No command takes an empty value: an empty path is the current folder (``--out ''`` wrote a diagnosis report
+    there and printed it as ``/diagnosis.json``), an empty list every item.  Refused before any work.
+    """
+    for i, token in enumerate(argv):
+        if token.startswith("--") and "=" in token:
+            name, value = token.split("=", 1)
+        elif i > 0 and argv[i - 1].startswith("--") and "=" not in argv[i - 1]:
+            name, value = argv[i - 1], token
+        else:
+            name, value = None, token
+        if not value.strip():
+            return f"{name} {value!r}" if name else f"argument {i + 1} ({value!r})"
+    return None
+
+
 def main(argv: Sequence[str] | None = None, layers: Sequence[str] = CORE_LAYERS) -> int:
     """Run the command line of ``layers``' commands; returns the exit status (also used as ``SystemExit`` code
     by the script).  The ``unipixie`` script is :func:`unipixie.cli.main` (every layer's commands)."""
     parser = build_parser(layers)
-    args = parser.parse_args(_argv_from_environment() if argv is None else list(argv))
+    argv = _argv_from_environment() if argv is None else list(argv)
+    empty = empty_argument(argv)
+    if empty:
+        print(f"{parser.prog}: error: {empty} is empty: give a value (see '{parser.prog} --help')", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    args = parser.parse_args(argv)
     if getattr(args, "cache_dir", None):
         from .paths import set_cache_root
 

@@ -127,3 +127,18 @@ def test_commands_refuse_what_the_fault_matrix_found(argv, needle, tmp_path, cap
     err = capsys.readouterr().err
     assert status == EXIT_BAD_INPUT and needle in err and "internal error" not in err, err
     assert not (tmp_path / "b.json").exists() and not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["diagnose", "m.npz", "--out", ""],                   # wrote the report into the current folder, said "/diagnosis.json"
+    ["diagnose", "m.npz", "--out="],
+    ["measure", "show", " "],
+    ["predict", "grid.npz", "--out", "  "],
+])
+def test_an_empty_value_on_the_command_line_is_refused_before_any_work(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    _falling_cube().save(tmp_path / "m.npz")
+    status = cli.main(argv)
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "is empty" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz"]
