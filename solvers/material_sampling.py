@@ -70,10 +70,16 @@ class HomogeneousMaterial:
         self.density = float(self.density)
         if not (np.isfinite(self.E) and self.E > 0):
             raise UserError(f"Young's modulus E must be a positive number of pascals, got {self.E!r}")
+        if self.E > materials.E_REFUSE:
+            raise UserError(f"Young's modulus E = {self.E:.3g} Pa is stiffer than any solid (diamond: 1.2e12 Pa): "
+                            "give it in pascals (steel 2e11)")
         if not (-1.0 < self.nu < 0.5):
             raise UserError(f"Poisson's ratio nu must lie in (-1, 0.5), got {self.nu!r}")
         if not (np.isfinite(self.density) and self.density > 0):
             raise UserError(f"density must be a positive number of kg/m³, got {self.density!r}")
+        if self.density > materials.DENSITY_REFUSE:
+            raise UserError(f"density {self.density:.3g} kg/m³ is denser than any solid (osmium: 22 590 kg/m³): give it "
+                            "in kg/m³ (water 1000)")
         self.material = materials.get(self.material).id
 
 

@@ -34,6 +34,12 @@ from typing import Mapping
 from ..core.errors import UserError
 
 
+DENSITY_REFUSE = 1e5
+"""kg/m³: no solid is denser than this (4× osmium's 22 590): a stated density above it is a unit mistake, refused."""
+E_REFUSE = 1e13
+"""Pa: no solid is stiffer than this (8× diamond's 1.2e12): a stated Young's modulus above it is refused."""
+
+
 @dataclass(frozen=True)
 class MaterialClass:
     """One material class.

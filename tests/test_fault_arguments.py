@@ -142,3 +142,19 @@ def test_an_empty_value_on_the_command_line_is_refused_before_any_work(argv, tmp
     err = capsys.readouterr().err
     assert status == EXIT_BAD_INPUT and "is empty" in err and "Traceback" not in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.npz"]
+
+
+@pytest.mark.parametrize("E, density, words", [(2e5, 1e9, "denser than any solid"),
+                                               (1e15, 1000.0, "stiffer than any solid")])
+def test_a_material_no_solid_has_is_refused_by_every_solver_path(E, density, words, tmp_path, capsys):
+    """`bake --density 1e9` baked and said "saved" (exit 0); the same rule refuses it in a measurement."""
+    from unipixie.solvers.material_sampling import HomogeneousMaterial
+
+    with pytest.raises(UserError, match=words):
+        HomogeneousMaterial(E, 0.3, density)
+    HomogeneousMaterial(1.2e12, 0.1, 22590.0)  # diamond's E, osmium's density: the stiffest and densest solids
+    status = cli.main(["measure", "synth", "--out", str(tmp_path / "m.npz"), "--solver", "spring_mass",
+                       "--duration", "0.2", "--fps", "20", "--points", "30", "--E", str(E), "--density", str(density)])
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and words in err and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []

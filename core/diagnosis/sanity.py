@@ -47,6 +47,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from ...solvers.materials import DENSITY_REFUSE, E_REFUSE
 from ..errors import UserError
 
 GROUND_TOLERANCE = (5.0, 0.02)
@@ -69,12 +70,8 @@ GRAVITY_REFUSE = 1000.0
 """m/s²: a stated gravity stronger than this (about 100 g) is refused as a unit mistake (9810 mm/s² for 9.81 m/s²)."""
 GRAVITY_WARN = 30.0
 """m/s²: a stated gravity stronger than this (about 3 g, more than any planet's surface but Jupiter's 25) is a warning."""
-DENSITY_REFUSE = 1e5
-"""kg/m³: a stated density above this (4× osmium's 22 590) is refused: no solid is that dense."""
 DENSITY_WARN = 10.0
 """kg/m³: a stated density below this (lighter than any solid but aerogels) is a warning: g/cm³ for kg/m³?"""
-E_REFUSE = 1e13
-"""Pa: a stated Young's modulus above this (8× diamond's 1.2e12) is refused: no solid is that stiff."""
 E_WARN = 10.0
 """Pa: a stated Young's modulus below this (softer than the softest gels) is a warning: MPa or kPa for Pa?"""
 STOPPING_DECELERATION = 1000.0
