@@ -425,6 +425,8 @@ def _setup_render(scene, settings: RenderSettings, cycles_device: str) -> None:
         scene.cycles.use_adaptive_sampling = True
         scene.cycles.use_denoising = False
         scene.cycles.max_bounces = 4
+        if settings.passes:
+            scene.cycles.filter_width = render_passes.PASS_FILTER_WIDTH
     else:
         r.engine = "BLENDER_WORKBENCH"
         shading = scene.display.shading

@@ -15,7 +15,8 @@ materials are never changed; the copies are data-blocks created during the rende
 A material without a Principled BSDF at the top level of its node tree (a node group, a Diffuse BSDF only,
 an emission) reports its viewport values (*Viewport Display* colour, roughness, metallic), and a face
 without a material Blender's default (grey 0.8, roughness 0.5, metallic 0).
-Cycles averages a pass over a pixel's samples, and samples that miss the object add 0, so a pixel on a
+Every sample of such a render is taken at the pixel's centre (:data:`PASS_FILTER_WIDTH`).  Cycles averages a
+pass over a pixel's samples, and samples that miss the object add 0, so a pixel on a
 silhouette holds the value times its coverage: the passes are divided by the coverage (the colour image's
 alpha) and the normal is scaled back to unit length.  Pixels less than half covered (:data:`MIN_COVERAGE`)
 and background pixels are NaN (no value) in every pass.
@@ -34,6 +35,11 @@ _AOVS = {"base_color": ("unipixie_base_color", "COLOR", "Base Color"),
          "roughness": ("unipixie_roughness", "VALUE", "Roughness"),
          "metallic": ("unipixie_metallic", "VALUE", "Metallic")}
 """pass -> (AOV name, AOV type, Principled BSDF input it copies)."""
+PASS_FILTER_WIDTH = 0.01
+"""Cycles' pixel filter width (pixels) when the passes are rendered: Cycles' smallest, so every sample is
+taken at the pixel's centre and a pixel's pass values are those of one surface point (the default 1.5-pixel
+Blackman-Harris filter mixes neighbouring pixels and widens a part boundary by about a pixel).  It applies to
+the colour image of such a render too, which is then not anti-aliased."""
 MIN_COVERAGE = 0.5
 """Pixels whose coverage by the object (alpha) is below this hold no pass values (NaN)."""
 _DEFAULT_SURFACE = {"base_color": (0.8, 0.8, 0.8), "roughness": 0.5, "metallic": 0.0}
