@@ -101,7 +101,9 @@ def probe(objects: list, train: list, test: list) -> dict:
                      "test_rms_elsewhere": float(np.sqrt(np.mean(err[~near] ** 2))),
                      "penalty": best[1], "loo_train_rms": best[0], "dim": int(Xs[0].shape[1])}
     codes = np.concatenate([objects[i]["code"] for i in test])
+    train_mean = float(np.concatenate([objects[i]["code"] for i in train]).mean())
     out["code_spread_test"] = float(codes.std())
+    out["train_mean_predictor_test_rms"] = float(np.sqrt(np.mean((codes - train_mean) ** 2)))
     return out
 
 
