@@ -17,8 +17,6 @@ from unipixie.core import appearance_features as af  # noqa: E402
 from unipixie.core import extractors  # noqa: E402
 from unipixie.core.errors import UserError  # noqa: E402
 
-RED = {"base": (0.8, 0.05, 0.05), "roughness": 0.9, "metallic": 0.0}
-BLUE = {"base": (0.05, 0.1, 0.8), "roughness": 0.2, "metallic": 1.0}
 
 
 # --------------------------------------------------------------------------- names, identities, refusals
@@ -169,39 +167,17 @@ print("LOADED", bad)
 
 
 # --------------------------------------------------------------------------- through Blender
-def _split_box(bpy):
-    """A 1 × 0.5 × 0.5 m box cut at x = 0: red rough (x < 0) and blue metallic (x > 0) halves, built by hand."""
-    import bmesh
-
-    mesh = bpy.data.meshes.new("split box")
-    bm = bmesh.new()
-    bmesh.ops.create_cube(bm, size=1.0)
-    bmesh.ops.scale(bm, vec=(1.0, 0.5, 0.5), verts=bm.verts)
-    bmesh.ops.bisect_plane(bm, geom=bm.verts[:] + bm.edges[:] + bm.faces[:], plane_co=(0, 0, 0), plane_no=(1, 0, 0))
-    for f in bm.faces:
-        f.material_index = 0 if f.calc_center_median().x < 0 else 1
-    bm.to_mesh(mesh)
-    bm.free()
-    obj = bpy.data.objects.new("split box", mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    for name, look in (("red rough", RED), ("blue metal", BLUE)):
-        mat = bpy.data.materials.new(name)
-        bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
-        bsdf.inputs["Base Color"].default_value = (*look["base"], 1.0)
-        bsdf.inputs["Roughness"].default_value = look["roughness"]
-        bsdf.inputs["Metallic"].default_value = look["metallic"]
-        mesh.materials.append(mat)
-    return obj
-
-
 @pytest.mark.blender
 def test_two_materials_are_recovered_per_side_with_a_sharp_boundary(blender):
     bpy = blender
+    from unipixie.core.blender_io.render_passes import SPLIT_BOX_LOOKS, split_box
     from unipixie.core.blender_io.scene_import import snapshot_ids
     from unipixie.core.features import FeatureOptions, compute_features
     from unipixie.training.feature_probe import transition_width
 
-    obj = _split_box(bpy)
+    obj = split_box(bpy.context.scene)       # built by hand: no generator, no labels
+    (_, red, red_rough, red_metal), (_, blue, blue_rough, blue_metal) = SPLIT_BOX_LOOKS
+    assert red == (0.8, 0.05, 0.05) and (red_rough, red_metal, blue_rough, blue_metal) == (0.9, 0.0, 0.2, 1.0)
     nodes_before = [len(m.node_tree.nodes) for m in bpy.data.materials]
     before = snapshot_ids()
     fast = dict(view_count=6, resolution=128, samples=2, use_cache=False)
@@ -214,8 +190,8 @@ def test_two_materials_are_recovered_per_side_with_a_sharp_boundary(blender):
     assert g.feature_model == "appearance-gbuffer-v1" and g.dim == 8 and g.meta["is_clip"] is False
     raw = g.features.astype(np.float32) * af.CHANNEL_SCALE + af.CHANNEL_CENTRE
     idx = g.indices
-    for side, look in ((idx[:, 0] <= 29, RED), (idx[:, 0] >= 34, BLUE)):
-        want = np.array([*look["base"], look["roughness"], look["metallic"]], np.float32)
+    for side, (_, colour, roughness, metallic) in zip((idx[:, 0] <= 29, idx[:, 0] >= 34), SPLIT_BOX_LOOKS):
+        want = np.array([*colour, roughness, metallic], np.float32)
         err = np.abs(raw[side, :5] - want)
         assert np.all(err.mean(axis=0) < 0.01), err.mean(axis=0)           # mean per channel
         assert np.all(np.percentile(err, 95, axis=0) < 0.03), np.percentile(err, 95, axis=0)

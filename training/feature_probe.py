@@ -144,35 +144,15 @@ def _object_features(index: int, seed: int, render_settings, extractors: dict, w
 
 def split_box_widths(render_settings, extractors: dict) -> dict:
     """:func:`transition_width` of the two-material box (x < 0 red rough, x > 0 blue metallic) per extractor."""
-    import bpy
-    import bmesh
-
     from ..core.blender_io import render
+    from ..core.blender_io.render_passes import split_box
     from ..core.blender_io.scene_import import temporary_scene
     from ..core.features import features_from_views, occupancy_of
     from ..core.jobs import run_job
     from ..core.normalise import Normalisation
 
     with temporary_scene("UniPixie probe box") as scene:
-        mesh = bpy.data.meshes.new("split box")
-        bm = bmesh.new()
-        bmesh.ops.create_cube(bm, size=1.0)
-        bmesh.ops.scale(bm, vec=(1.0, 0.5, 0.5), verts=bm.verts)
-        bmesh.ops.bisect_plane(bm, geom=bm.verts[:] + bm.edges[:] + bm.faces[:], plane_co=(0, 0, 0),
-                               plane_no=(1, 0, 0))
-        for f in bm.faces:
-            f.material_index = 0 if f.calc_center_median().x < 0 else 1
-        bm.to_mesh(mesh)
-        bm.free()
-        obj = bpy.data.objects.new("split box", mesh)
-        scene.collection.objects.link(obj)
-        for name, colour, rough, metal in (("red", (0.8, 0.05, 0.05), 0.9, 0.0), ("blue", (0.05, 0.1, 0.8), 0.2, 1.0)):
-            mat = bpy.data.materials.new(name)
-            bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
-            bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
-            bsdf.inputs["Roughness"].default_value = rough
-            bsdf.inputs["Metallic"].default_value = metal
-            mesh.materials.append(mat)
+        obj = split_box(scene)
         info = render.describe_subject([obj])
         views = run_job(render.render_job([obj], render_settings))
     occ = occupancy_of(Normalisation.from_matrix(views.normalisation).to_normalised(info.vertices), info.faces).occupancy

@@ -168,3 +168,36 @@ def read_passes(out_dir: Path, prefix: str, read_exr, find_output) -> dict:
         px = read_exr(find_output(out_dir, prefix, f"pass_{name}", ".exr"))
         out[name] = np.ascontiguousarray(px[..., :channels], dtype=np.float32)
     return out
+
+
+SPLIT_BOX_LOOKS = (("red rough", (0.8, 0.05, 0.05), 0.9, 0.0), ("blue metal", (0.05, 0.1, 0.8), 0.2, 1.0))
+"""(name, base colour (linear RGB), roughness, metallic) of the two halves of :func:`split_box`."""
+
+
+def split_box(scene, looks=SPLIT_BOX_LOOKS):
+    """A 1 × 0.5 × 0.5 m box cut at x = 0 into two materials (x < 0: ``looks[0]``, x > 0: ``looks[1]``), built
+    by hand and linked into ``scene`` (the caller removes it): the object whose part boundary the appearance
+    tests and the feature probe measure.  Returns the object."""
+    import bmesh
+
+    mesh = bpy.data.meshes.new("split box")
+    bm = bmesh.new()
+    bmesh.ops.create_cube(bm, size=1.0)
+    bmesh.ops.scale(bm, vec=(1.0, 0.5, 0.5), verts=bm.verts)
+    bmesh.ops.bisect_plane(bm, geom=bm.verts[:] + bm.edges[:] + bm.faces[:], plane_co=(0, 0, 0), plane_no=(1, 0, 0))
+    for f in bm.faces:
+        f.material_index = 0 if f.calc_center_median().x < 0 else 1
+    bm.to_mesh(mesh)
+    bm.free()
+    obj = bpy.data.objects.new("split box", mesh)
+    scene.collection.objects.link(obj)
+    for name, colour, roughness, metallic in looks:
+        mat = bpy.data.materials.new(name)
+        if mat.node_tree is None:
+            mat.use_nodes = True
+        bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
+        bsdf.inputs["Roughness"].default_value = roughness
+        bsdf.inputs["Metallic"].default_value = metallic
+        mesh.materials.append(mat)
+    return obj
