@@ -25,7 +25,7 @@ views and a mesh without Blender.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Generator, Optional
 
@@ -61,7 +61,11 @@ class FeatureOptions:
     """What to compute.
 
     view_count, resolution, engine, samples, render_device: see :class:`.blender_io.render.RenderSettings`.
-    offline: use the untrained offline ViT (``offline-random-vit-w32``, not CLIP) instead of CLIP.
+    extractor: which feature extractor (:data:`.extractors.EXTRACTORS`: ``"clip"``, ``"offline"``,
+    ``"appearance"``, ``"appearance+vit"``); empty: ``"offline"`` when ``offline`` is set, else ``"clip"``.
+    The appearance extractors render Cycles' passes with the views (:mod:`.appearance_features`).
+    offline: use the untrained offline ViT (``offline-random-vit-w32``, not CLIP) instead of CLIP (the same
+    as ``extractor="offline"``).
     clip_weights: local CLIP weights (file or folder); ``None``: ``$UNIPIXIE_CLIP_WEIGHTS`` or the default folder.
     clip_model: the OpenCLIP architecture of the CLIP weights (default ViT-B-16, the paper's).
     device: torch device for features and lifting (``"cpu"``, ``"cuda"``, ``"auto"``).
@@ -78,12 +82,37 @@ class FeatureOptions:
     clip_model: str = CLIP_MODEL
     device: str = "cpu"
     use_cache: bool = True
+    extractor: str = ""
+
+    def __post_init__(self):
+        from .extractors import check_name
+
+        if self.extractor:
+            self.extractor = check_name(self.extractor)
+            if self.offline and self.extractor != "offline":
+                raise UserError(f"the offline features and the {self.extractor!r} extractor were both asked for; "
+                                "choose one")
+        if self.needs_passes and str(self.engine).lower() != "cycles":
+            from .extractors import PASSES_NEED_CYCLES
+
+            raise UserError(PASSES_NEED_CYCLES)
+
+    @property
+    def extractor_name(self) -> str:
+        """The extractor these options ask for (see ``extractor``)."""
+        return self.extractor or ("offline" if self.offline else "clip")
+
+    @property
+    def needs_passes(self) -> bool:
+        from .extractors import NEEDS_PASSES
+
+        return self.extractor_name in NEEDS_PASSES
 
     def render_settings(self):
         from .blender_io.render import RenderSettings
 
         return RenderSettings(view_count=self.view_count, resolution=self.resolution, engine=self.engine,
-                              samples=self.samples, device=self.render_device)
+                              samples=self.samples, device=self.render_device, passes=self.needs_passes)
 
 
 @dataclass
@@ -122,16 +151,19 @@ def occupancy_of(vertices_normalised: np.ndarray, faces: np.ndarray):
 
 def features_from_views(views: Views, occupancy: np.ndarray, extractor, device: str = "cpu",
                         meta: dict | None = None, timings: dict | None = None) -> FeatureGrid:
-    """Steps 4–5 without Blender: features of ``views`` by ``extractor`` lifted onto ``occupancy``."""
+    """Steps 4–5 without Blender: features of ``views`` by ``extractor`` lifted onto ``occupancy``
+    (an appearance extractor needs ``views.passes``)."""
+    from .extractors import feature_maps
     from .lift import feature_grid
 
     timings = timings if timings is not None else {}
     t = time.perf_counter()
-    maps = extractor(views.images)
+    maps = feature_maps(extractor, views)
     _sync(device)
     timings["features"] = time.perf_counter() - t
     t = time.perf_counter()
-    grid = feature_grid(views, maps, occupancy, extractor.name, unit_cube_grid(), meta=meta, device=device)
+    grid = feature_grid(views, maps, occupancy, extractor.name, unit_cube_grid(), meta=meta, device=device,
+                        sample_offset_voxels=getattr(extractor, "sample_offset_voxels", 0.0))
     _sync(device)
     timings["lift"] = time.perf_counter() - t
     return grid
@@ -146,12 +178,9 @@ def _sync(device: str) -> None:
 
 def extractor_identity(options: FeatureOptions) -> dict:
     """What determines the features, without loading a model (cheap; for cache keys)."""
-    from . import clip_features as cf
+    from .extractors import identity
 
-    if options.offline:
-        return cf.offline_identity()
-    return {"model": options.clip_model,
-            "weights": cf.weights_identity(cf.resolve_clip_weights(options.clip_weights, model=options.clip_model))}
+    return identity(options.extractor_name, options.clip_weights, options.clip_model)
 
 
 def views_cache_path(fingerprint: str, settings) -> Path:
@@ -196,10 +225,12 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
     """The whole pipeline for Blender objects as a job: yields (fraction, status), returns a
     :class:`FeatureResult` (see module docstring).  ``extractor`` (optional) replaces the one
     ``options`` names (e.g. to reuse a loaded model)."""
-    from . import clip_features as cf
+    from . import extractors
     from .blender_io import render
 
     options = options or FeatureOptions()
+    if extractor is not None and getattr(extractor, "needs_passes", False) and not options.needs_passes:
+        options = replace(options, offline=False, extractor=extractors.name_of(extractor.name))
     settings = options.render_settings()
     timings: dict = {}
     t = time.perf_counter()
@@ -224,8 +255,8 @@ def features_job(objects, options: FeatureOptions | None = None, extractor=None,
     yield 0.02, "loading the feature model"
     if extractor is None:
         t = time.perf_counter()
-        extractor = cf.make_extractor(offline=options.offline, clip_weights=options.clip_weights, device=options.device,
-                                      model=options.clip_model)
+        extractor = extractors.make(options.extractor_name, clip_weights=options.clip_weights, device=options.device,
+                                    clip_model=options.clip_model)
         timings["load_model"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -48,6 +48,8 @@ COS_MIN = 0.25
 """Smallest |cos θ| used to widen the depth tolerance (at most 1/COS_MIN = 4 τ behind the surface)."""
 SHELL_GAP_VOXELS = 3
 """Open meshes: gaps in the surface shell up to this many voxels are bridged to find an enclosed inside."""
+SURFACE_SAMPLE_OFFSET = 0.5
+"""Voxel edges outward along the normal at which pixel-accurate maps are sampled (``sample_offset_voxels``)."""
 NORMAL_SIGMA_VOXELS = 1.0
 """σ of the Gaussian blur of the occupancy whose gradient gives the voxel normals, in voxels."""
 
@@ -290,14 +292,23 @@ def visibility(views: Views, points: np.ndarray, cos_theta: np.ndarray, voxel_si
 
 
 def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: GridGeometry | None = None,
-                  depth_tolerance_voxels: float = DEPTH_TOLERANCE_VOXELS, device: str = "cpu") -> LiftResult:
+                  depth_tolerance_voxels: float = DEPTH_TOLERANCE_VOXELS, device: str = "cpu",
+                  sample_offset_voxels: float = 0.0) -> LiftResult:
     """Lift per-view feature maps onto the occupied voxels (see module docstring).
 
     views: the rendered views of the normalised object (depths in normalised units).
     feature_maps: (V, g_h, g_w, D) float (numpy or torch) covering each whole image (token grid or
-        full resolution; sampled bilinearly with ``align_corners=False``).
+        full resolution; sampled bilinearly with ``align_corners=False``), or a list of such maps of any
+        sizes (e.g. full-resolution render passes and a ViT's token grid): each is sampled at its own
+        resolution and the lifted features are concatenated in order (D = sum of the D_i).
     occupancy: (R, R, R) bool over ``geometry`` (default: 64³ unit-cube grid).
     device: torch device for the sampling and accumulation (``"cpu"`` or ``"cuda"``).
+    sample_offset_voxels: sample the maps at the projection of the voxel centre moved this many voxel edges
+        outwards along its normal (visibility still tests the centre).  0 (the default) samples at the centre.
+        A surface voxel's centre lies 0–1 voxel under the surface, half a voxel on average, so 0.5 samples
+        near the surface point itself; from an oblique view the centre's projection lands up to
+        ``0.5 tan θ`` voxels beside it — what pixel-accurate maps (:data:`SURFACE_SAMPLE_OFFSET`) need to
+        keep part boundaries sharp, and below the resolution of a 16-pixel token grid.
     """
     import torch
     from scipy import ndimage
@@ -309,12 +320,16 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
         raise UserError(f"occupancy must be {(R, R, R)}, got {occ.shape}")
     if not occ.any():
         raise UserError("the occupancy grid is empty: nothing to lift features onto")
-    fmap = feature_maps if isinstance(feature_maps, torch.Tensor) else torch.as_tensor(np.asarray(feature_maps))
-    fmap = fmap.to(device=device, dtype=torch.float32)
-    if fmap.ndim != 4 or fmap.shape[0] != views.count:
-        raise UserError(f"feature maps must be (V={views.count}, h, w, D), got {tuple(fmap.shape)}")
+    fmaps = []
+    for m in (feature_maps if isinstance(feature_maps, (list, tuple)) else [feature_maps]):
+        m = m if isinstance(m, torch.Tensor) else torch.as_tensor(np.asarray(m))
+        m = m.to(device=device, dtype=torch.float32)
+        if m.ndim != 4 or m.shape[0] != views.count:
+            raise UserError(f"feature maps must be (V={views.count}, h, w, D), got {tuple(m.shape)}")
+        fmaps.append(m)
+    if not fmaps:
+        raise UserError("no feature maps to lift")
     V, H, W = views.depth.shape
-    D = fmap.shape[-1]
 
     surf = surface_mask(occ)
     sidx = np.argwhere(surf)
@@ -326,6 +341,11 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     cos = np.einsum("vsc,sc->vs", to_cam, normals)
     cos = np.where(valid[None], cos, 1.0)
     visible, u, v = visibility(views, centres, cos, geometry.voxel_size, depth_tolerance_voxels)
+    if sample_offset_voxels:
+        outward = np.where(valid[:, None], normals, 0.0) * (float(sample_offset_voxels) * geometry.voxel_size)
+        u, v, _ = project(views, centres + outward)
+        u = np.where(visible, u, 0.0)
+        v = np.where(visible, v, 0.0)
     weight = np.where(visible, np.maximum(np.abs(cos), 1e-3), 0.0)
 
     S = len(sidx)
@@ -334,28 +354,13 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
     if not painted.any():
         raise UserError("no view sees any surface voxel: the views do not show this object (wrong cameras, "
                         "empty renders, or depth in other units than the occupancy grid)")
-    # Bilinear sampling (align_corners=False, border) of every seeing view, weighted and summed, as one
-    # sparse (S, V*gh*gw) x dense (V*gh*gw, D) product: row s holds 4 bilinear taps per seeing view.
-    gh, gw = int(fmap.shape[1]), int(fmap.shape[2])
+    # Bilinear sampling (align_corners=False, border) of every seeing view, weighted and summed (per map)
     surf_i, view_i = np.nonzero(visible.T)                                    # sorted by voxel (CSR rows)
-    x = np.clip(u[view_i, surf_i] / W * gw - 0.5, 0.0, gw - 1.0)
-    y = np.clip(v[view_i, surf_i] / H * gh - 0.5, 0.0, gh - 1.0)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    x1, y1 = np.minimum(x0 + 1, gw - 1), np.minimum(y0 + 1, gh - 1)
     w = weight[view_i, surf_i] / wsum[surf_i]
-    base = view_i * (gh * gw)
-    cols = np.stack([base + y0 * gw + x0, base + y0 * gw + x1, base + y1 * gw + x0, base + y1 * gw + x1], axis=1)
-    vals = np.stack([w * (1 - fx) * (1 - fy), w * fx * (1 - fy), w * (1 - fx) * fy, w * fx * fy], axis=1)
     crow = np.zeros(S + 1, dtype=np.int64)
     crow[1:] = np.cumsum(4 * np.bincount(surf_i, minlength=S))
-    with _warnings.catch_warnings():
-        _warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
-        taps = torch.sparse_csr_tensor(torch.as_tensor(crow, device=device),
-                                       torch.as_tensor(cols.reshape(-1), device=device),
-                                       torch.as_tensor(vals.reshape(-1), dtype=torch.float32, device=device),
-                                       size=(S, V * gh * gw), device=device)
-        surf_all = taps @ fmap.reshape(V * gh * gw, D)                         # (S, D); weights sum to 1
+    surf_all = torch.cat([_sample_weighted(fmap, u[view_i, surf_i] / W, v[view_i, surf_i] / H, view_i, w, crow, S,
+                                           device) for fmap in fmaps], dim=1)          # (S, D); weights sum to 1
     surf_feats = surf_all[torch.as_tensor(painted, device=device)].to(torch.float16).cpu().numpy()
 
     # interior and unseen voxels: features of the nearest painted surface voxel
@@ -374,11 +379,37 @@ def lift_features(views: Views, feature_maps, occupancy: np.ndarray, geometry: G
                       painted_fraction_of_surface=float(painted.mean()), surface_voxels=int(S))
 
 
+def _sample_weighted(fmap, ux, vy, view_i, w, crow, S: int, device: str):
+    """Row s: the weighted sum over its seeing views of ``fmap`` (V, gh, gw, D) sampled bilinearly
+    (``align_corners=False``, border) at image fractions (``ux``, ``vy``) — one sparse (S, V·gh·gw) ×
+    dense (V·gh·gw, D) product with 4 taps per (voxel, view) pair, rows in CSR order ``crow``."""
+    import torch
+
+    V, gh, gw, D = (int(n) for n in fmap.shape)
+    x = np.clip(ux * gw - 0.5, 0.0, gw - 1.0)
+    y = np.clip(vy * gh - 0.5, 0.0, gh - 1.0)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, gw - 1), np.minimum(y0 + 1, gh - 1)
+    base = view_i * (gh * gw)
+    cols = np.stack([base + y0 * gw + x0, base + y0 * gw + x1, base + y1 * gw + x0, base + y1 * gw + x1], axis=1)
+    vals = np.stack([w * (1 - fx) * (1 - fy), w * fx * (1 - fy), w * (1 - fx) * fy, w * fx * fy], axis=1)
+    with _warnings.catch_warnings():
+        _warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        taps = torch.sparse_csr_tensor(torch.as_tensor(crow, device=device),
+                                       torch.as_tensor(cols.reshape(-1), device=device),
+                                       torch.as_tensor(vals.reshape(-1), dtype=torch.float32, device=device),
+                                       size=(S, V * gh * gw), device=device)
+        return taps @ fmap.reshape(V * gh * gw, D)
+
+
 def feature_grid(views: Views, feature_maps, occupancy: np.ndarray, feature_model: str,
-                 geometry: GridGeometry | None = None, meta: dict | None = None, device: str = "cpu") -> FeatureGrid:
+                 geometry: GridGeometry | None = None, meta: dict | None = None, device: str = "cpu",
+                 sample_offset_voxels: float = 0.0) -> FeatureGrid:
     """:func:`lift_features` packed as a :class:`~.types.FeatureGrid` (float16 features)."""
     geometry = geometry or unit_cube_grid()
-    res = lift_features(views, feature_maps, occupancy, geometry, device=device)
+    res = lift_features(views, feature_maps, occupancy, geometry, device=device,
+                        sample_offset_voxels=sample_offset_voxels)
     m = dict(meta or {})
     m.update(painted_fraction_of_surface=res.painted_fraction_of_surface, surface_voxels=res.surface_voxels,
              mean_views_per_surface_voxel=float(res.views_per_voxel[res.views_per_voxel > 0].mean())

@@ -74,6 +74,9 @@ def _save_npz(path, **arrays) -> Path:
 
 
 # --------------------------------------------------------------------------- Views
+_PASS_PREFIX = "pass_"
+"""Archive keys of a views file's optional render passes (``pass_<name>``)."""
+
 @dataclass
 class Views:
     """Rendered views of one object (normalised into the unit cube).
@@ -85,6 +88,11 @@ class Views:
     cam_to_world: (V, 4, 4) float64, Blender camera convention (camera looks along -Z, +Y up).
     normalisation: (4, 4) float64, the matrix that maps the object's world space into the
         normalised unit cube the views were rendered in.
+    passes: optional render passes of the same views, name -> (V, H, W, C) float32 (Cycles G-buffer:
+        ``base_color`` C = 3 linear, ``roughness`` / ``metallic`` C = 1 in [0, 1], ``normal`` C = 3 unit
+        vectors in the normalised cube's frame; NaN for background pixels and pixels less than half covered by
+        the object); empty when not rendered.
+        Saved as float16.
     """
 
     images: np.ndarray
@@ -93,6 +101,7 @@ class Views:
     cam_to_world: np.ndarray
     normalisation: np.ndarray = field(default_factory=lambda: np.eye(4))
     meta: dict = field(default_factory=dict)
+    passes: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.images = np.asarray(self.images, dtype=np.float32)
@@ -106,6 +115,15 @@ class Views:
         _check(self.intrinsics.shape == (V, 3, 3), f"Views.intrinsics must be {(V, 3, 3)}, got {self.intrinsics.shape}")
         _check(self.cam_to_world.shape == (V, 4, 4), f"Views.cam_to_world must be {(V, 4, 4)}, got {self.cam_to_world.shape}")
         _check(self.normalisation.shape == (4, 4), "Views.normalisation must be (4, 4)")
+        passes = {}
+        for name, arr in dict(self.passes or {}).items():
+            a = np.asarray(arr, dtype=np.float32)
+            if a.ndim == 3:
+                a = a[..., None]
+            _check(a.ndim == 4 and a.shape[:3] == (V, H, W),
+                   f"Views.passes[{name!r}] must be {(V, H, W)} + (C,), got {a.shape}")
+            passes[str(name)] = a
+        self.passes = passes
 
     @property
     def count(self) -> int:
@@ -115,14 +133,17 @@ class Views:
         path = Path(path)
         _save_npz(path, format=FORMATS["views"], images=(np.clip(self.images, 0, 1) * 65535).astype(np.uint16),
                             depth=self.depth, intrinsics=self.intrinsics, cam_to_world=self.cam_to_world,
-                            normalisation=self.normalisation, meta=json.dumps(self.meta))
+                            normalisation=self.normalisation, meta=json.dumps(self.meta),
+                            **{f"{_PASS_PREFIX}{k}": v.astype(np.float16) for k, v in self.passes.items()})
         return path
 
     @classmethod
     def load(cls, path) -> "Views":
         d = _load_npz(path, "views")
+        passes = {k[len(_PASS_PREFIX):]: v for k, v in d.items() if k.startswith(_PASS_PREFIX)}
         return cls(images=d["images"].astype(np.float32) / 65535.0, depth=d["depth"], intrinsics=d["intrinsics"],
-                   cam_to_world=d["cam_to_world"], normalisation=d["normalisation"], meta=_json_key(d, "meta", path))
+                   cam_to_world=d["cam_to_world"], normalisation=d["normalisation"], meta=_json_key(d, "meta", path),
+                   passes=passes)
 
 
 # --------------------------------------------------------------------------- grids

@@ -78,6 +78,10 @@ def weights_source(feature_model: str = "") -> WeightsSource:
     feature_model = feature_model or cf.CLIP_MODEL
     if feature_model == cf.OFFLINE_FEATURE_MODEL or feature_model.startswith(cf.OFFLINE_FEATURE_MODEL):
         raise UserError(f"'{feature_model}' is the offline extractor (a seeded, untrained ViT): it needs no weights")
+    from .extractors import description, needs_weights
+
+    if not needs_weights(feature_model):
+        raise UserError(f"'{feature_model}' is the {description(feature_model)}: it needs no weights")
     tag = cf.OPENCLIP_PRETRAINED.get(feature_model)
     if tag is None:
         raise UserError(f"no OpenCLIP weights are known for the feature model '{feature_model}' (known: "

@@ -59,7 +59,10 @@ class BuildSettings:
     resolution: voxels per side of the grid (64; the model's input).
     views / render_resolution / engine / samples: rendering for the features (Workbench by default).
     offline_features: the seeded, untrained offline ViT (``offline-random-vit-w32``, *not* CLIP); otherwise
-    CLIP from ``clip_weights`` (file or folder).  feature_device: torch device of features and lifting.
+    CLIP from ``clip_weights`` (file or folder).  extractor: a feature extractor by name
+    (:data:`unipixie.core.extractors.EXTRACTORS`, e.g. ``"appearance"`` or ``"appearance+vit"``, which read
+    Cycles' render passes: ``engine="cycles"``); empty: as ``offline_features`` says.  feature_device: torch
+    device of features and lifting.
     split: fractions of train / val / test.  ground_truth: :class:`~.ground_truth.GroundTruthSettings`
     (as a dict).  test_alphas: extra α at which test objects are simulated with MPM (for the evaluation).
     """
@@ -75,6 +78,7 @@ class BuildSettings:
     clip_weights: Optional[str] = None
     feature_device: str = "cpu"
     split: tuple = (0.8, 0.1, 0.1)
+    extractor: str = ""
     ground_truth: dict = field(default_factory=lambda: GroundTruthSettings().to_dict())
     test_alphas: tuple = (0.5,)
 
@@ -98,6 +102,17 @@ class BuildSettings:
         if isinstance(self.ground_truth, GroundTruthSettings):
             self.ground_truth = self.ground_truth.to_dict()
         GroundTruthSettings.from_dict(self.ground_truth)  # validates
+        if self.extractor:
+            from ..core.extractors import NEEDS_PASSES, PASSES_NEED_CYCLES, check_name
+
+            self.extractor = check_name(self.extractor)
+            if self.extractor in NEEDS_PASSES and str(self.engine).lower() != "cycles":
+                raise UserError(PASSES_NEED_CYCLES)
+
+    @property
+    def extractor_name(self) -> str:
+        """The extractor the build uses (``extractor``, else ``"offline"`` / ``"clip"`` by ``offline_features``)."""
+        return self.extractor or ("offline" if self.offline_features else "clip")
 
     def gt_settings(self, split: str) -> GroundTruthSettings:
         gt = GroundTruthSettings.from_dict(self.ground_truth)
@@ -236,11 +251,10 @@ class Renderer:
     @property
     def extractor(self):
         if self._extractor is None:
-            from ..core import clip_features as cf
+            from ..core import extractors
 
-            self._extractor = cf.make_extractor(offline=self.settings.offline_features,
-                                                clip_weights=self.settings.clip_weights,
-                                                device=self.settings.feature_device)
+            self._extractor = extractors.make(self.settings.extractor_name, clip_weights=self.settings.clip_weights,
+                                              device=self.settings.feature_device)
         return self._extractor
 
     def views(self, glb_path: Path):
@@ -253,17 +267,20 @@ class Renderer:
 
         s = self.settings
         rs = render.RenderSettings(view_count=s.views, resolution=s.render_resolution, engine=s.engine,
-                                   samples=s.samples, device="cpu" if s.engine == "workbench" else "auto")
+                                   samples=s.samples, device="cpu" if s.engine == "workbench" else "auto",
+                                   passes=getattr(self.extractor, "needs_passes", False))
         with loaded_objects(glb_path) as objects:
             return run_job(render.render_job(objects, rs))
 
     def feature_grid(self, views, occupancy: np.ndarray, meta: dict):
+        from ..core.extractors import feature_maps
         from ..core.lift import feature_grid
         from ..core.normalise import unit_cube_grid
 
-        maps = self.extractor(views.images)
+        maps = feature_maps(self.extractor, views)      # images (ViT) or render passes (appearance): never labels
         return feature_grid(views, maps, occupancy, self.extractor.name, unit_cube_grid(occupancy.shape[0]),
-                            meta=meta, device=self.extractor.device)
+                            meta=meta, device=self.extractor.device,
+                            sample_offset_voxels=getattr(self.extractor, "sample_offset_voxels", 0.0))
 
 
 def _check_normalisation(views, norm) -> None:
@@ -306,7 +323,7 @@ def build_object(root: Path, index: int, settings: BuildSettings, renderer: Rend
 
     t = time.perf_counter()
     meta = {"normalisation": norm.to_dict(), "space": "normalised", "view_count": views.count,
-            "resolution": int(views.images.shape[1]), "engine": settings.engine, "is_clip": not settings.offline_features,
+            "resolution": int(views.images.shape[1]), "engine": settings.engine, "is_clip": bool(renderer.extractor.is_clip),
             "source": f"procedural:{obj.object_id}"}
     grid = renderer.feature_grid(views, occ, meta)
     timings["features"] = time.perf_counter() - t
@@ -376,6 +393,10 @@ def _write_feature_recipe(root: Path, settings: BuildSettings) -> None:
     pipeline renders new objects the same way (core.model.checkpoint.read_feature_recipe)."""
     recipe = {"engine": str(settings.engine).lower(), "view_count": int(settings.views),
               "resolution": int(settings.render_resolution), "samples": int(settings.samples)}
+    if settings.extractor:          # named explicitly: the checkpoint's pipeline extracts the same features
+        from ..core.extractors import feature_model
+
+        recipe["extractor"] = feature_model(settings.extractor)
     _atomic_write_text(root / "feature_recipe.json", json.dumps(recipe, indent=1))
 
 
@@ -517,7 +538,8 @@ def card_markdown(card: dict) -> str:
         gt = s.get("ground_truth", {})
         L += ["## Generation settings", "",
               f"- seed {s.get('seed')}, grid {s.get('resolution')}³, {s.get('views')} views at {s.get('render_resolution')} px "
-              f"({s.get('engine')}), offline features: {s.get('offline_features')}",
+              f"({s.get('engine')}), offline features: {s.get('offline_features')}"
+              + (f", extractor: {s['extractor']}" if s.get("extractor") else ""),
               f"- ground truth: {gt.get('frames')} frames at {gt.get('fps')} fps, MPM {gt.get('cells_across')} cells across, "
               f"{gt.get('particles_per_cell_axis')}³ particles per cell, wave speed ≤ {gt.get('wave_speed_per_size')} × size per s, "
               f"{gt.get('tracked_points')} tracked vertices, LBS {gt.get('lbs_cubature_points')} cubature points, "

@@ -304,10 +304,15 @@ def _recipe_of(index: dict):
     samples so that training copies it into the checkpoint (``feature_recipe.json``)."""
     settings = (index.get("dataset_card") or {}).get("settings") or {}
     try:
-        return {"engine": str(settings["engine"]).lower(), "view_count": int(settings["views"]),
-                "resolution": int(settings["render_resolution"]), "samples": int(settings.get("samples", 8))}
+        recipe = {"engine": str(settings["engine"]).lower(), "view_count": int(settings["views"]),
+                  "resolution": int(settings["render_resolution"]), "samples": int(settings.get("samples", 8))}
     except (KeyError, TypeError, ValueError):
         return None
+    if settings.get("extractor"):
+        from ..core.extractors import feature_model
+
+        recipe["extractor"] = feature_model(settings["extractor"])
+    return recipe
 
 
 def main(argv=None) -> int:

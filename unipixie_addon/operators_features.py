@@ -17,6 +17,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty, IntProperty, PointerProperty, StringProperty
 
+from ..core import extractors
 from ..core.blender_io.scene_import import GEOMETRY_TYPES
 from ..core.errors import UserError
 from ..core.features import DEFAULT_RESOLUTION
@@ -142,7 +143,7 @@ class UNIPIXIE_OT_compute_features(_FeatureOperatorMixin, JobOperator, bpy.types
                 state.views_path = str(result.views_path)
                 state.view_count = int(grid.meta.get("view_count", 0))
             obj.unipixie.status = "features ready"
-        label = grid.feature_model if grid.meta.get("is_clip", True) else f"{grid.feature_model} (offline random ViT, not CLIP)"
+        label = extractors.label(grid.feature_model)
         msg = (f"{int(grid.occupancy.sum())} voxels, D = {grid.dim}, {label}"
                + (" (from the cache)" if result.cache_hit else ""))
         for w in result.warnings:
@@ -174,8 +175,8 @@ class VIEW3D_PT_unipixie_features(bpy.types.Panel):
             layout.label(text=f"{state.view_count} views rendered")
         if state.grid_path:
             layout.label(text=f"{state.occupied_voxels} voxels, {state.feature_model}")
-            if state.feature_model.startswith("offline-"):
-                layout.label(text="offline random ViT features (not CLIP)", icon="INFO")
+            if extractors.name_of(state.feature_model) != "clip":
+                layout.label(text=extractors.description(state.feature_model), icon="INFO")
 
 
 CLASSES = (UniPixieFeatureState, UNIPIXIE_OT_render_views, UNIPIXIE_OT_compute_features, VIEW3D_PT_unipixie_features)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import bpy
 from bpy.app.handlers import persistent
 
+from ..core import extractors
 from ..core import pipeline as core
 from ..core.blender_io import field_view
 from ..core.blender_io import pipeline as pio
@@ -230,8 +231,7 @@ class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
             msg = f"views of '{self._object_name}' in {result}"
         elif self.step == "features":
             g = result.grid
-            msg = (f"{int(g.occupancy.sum())} voxels, D = {g.dim}, {g.feature_model}"
-                   + ("" if g.meta.get("is_clip", False) else " (offline random ViT features, not CLIP)")
+            msg = (f"{int(g.occupancy.sum())} voxels, D = {g.dim}, {extractors.label(g.feature_model)}"
                    + (" (from the cache)" if result.cache_hit else ""))
             for w in result.warnings:
                 self.report({"WARNING"}, w)

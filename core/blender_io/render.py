@@ -16,6 +16,7 @@ renders on the CPU by default (``device="auto"`` uses a GPU the user's Cycles
 preferences, or a CUDA/OptiX/HIP/oneAPI/Metal backend, provides), Workbench
 is the fast option (studio lighting, texture colours).
 
+With ``passes`` (Cycles) it also writes the surface-appearance passes of :mod:`.render_passes`.
 Per view the compositor writes the display-referred colour (view transform
 *Standard*, sRGB, 8-bit PNG with alpha, composited over ``background`` here)
 and the Z pass (float EXR: distance along the camera's viewing axis, in
@@ -44,6 +45,7 @@ from ..lift import camera_rig, look_at_origin
 from ..normalise import Normalisation
 from ..render_defaults import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
 from ..types import Views
+from . import render_passes
 from .scene_import import geometry_objects, quiet_blender_output, remove_new_ids, snapshot_ids
 
 ENGINES = ("cycles", "workbench")
@@ -59,6 +61,8 @@ class RenderSettings:
     engine: ``"cycles"`` or ``"workbench"``.  samples: Cycles samples per pixel (adaptive sampling on,
     denoising off).  device: ``"cpu"``, ``"gpu"`` or ``"auto"`` for Cycles.  fov_degrees: camera field
     of view.  background: RGB in [0, 1] the images are composited over (display sRGB).
+    passes: also render the surface-appearance passes (:mod:`.render_passes`: base colour, roughness,
+    metallic, normal) into :attr:`Views.passes` (Cycles only; what the appearance extractor reads).
     """
 
     view_count: int = DEFAULT_VIEW_COUNT
@@ -68,6 +72,7 @@ class RenderSettings:
     device: str = "cpu"
     fov_degrees: float = 40.0
     background: tuple = (1.0, 1.0, 1.0)
+    passes: bool = False
 
     def __post_init__(self):
         self.engine = str(self.engine).lower()
@@ -88,11 +93,18 @@ class RenderSettings:
         if self.device not in ("cpu", "gpu", "auto"):
             raise UserError(f"render device must be cpu, gpu (cuda) or auto, got {self.device!r}")
         self.background = tuple(float(c) for c in self.background)
+        self.passes = bool(self.passes)
+        if self.passes and self.engine != "cycles":
+            from ..extractors import PASSES_NEED_CYCLES
+
+            raise UserError(PASSES_NEED_CYCLES)
 
     def key(self) -> dict:
         """What determines the images (for cache keys); the Cycles device does not."""
         d = asdict(self)
         d.pop("device")
+        if not self.passes:
+            d.pop("passes")             # colour-only renders keep their cache keys
         d["version"] = RENDER_VERSION
         if self.engine == "workbench":
             d.pop("samples")
@@ -413,6 +425,8 @@ def _setup_render(scene, settings: RenderSettings, cycles_device: str) -> None:
         scene.cycles.use_adaptive_sampling = True
         scene.cycles.use_denoising = False
         scene.cycles.max_bounces = 4
+        if settings.passes:
+            scene.cycles.filter_width = render_passes.PASS_FILTER_WIDTH
     else:
         r.engine = "BLENDER_WORKBENCH"
         shading = scene.display.shading
@@ -455,15 +469,20 @@ def _read_png(path: Path) -> np.ndarray:
         return np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
 
 
-def _read_exr_channel0(path: Path) -> np.ndarray:
+def _read_exr(path: Path) -> np.ndarray:
+    """(H, W, channels) float32 pixels of an EXR file, rows top-down (as written, no colour management)."""
     img = bpy.data.images.load(str(path), check_existing=False)
     try:
         w, h = img.size
         px = np.empty(w * h * img.channels, dtype=np.float32)
         img.pixels.foreach_get(px)
-        return px.reshape(h, w, img.channels)[::-1, :, 0].copy()     # Blender stores rows bottom-up
+        return px.reshape(h, w, img.channels)[::-1].copy()     # Blender stores rows bottom-up
     finally:
         bpy.data.images.remove(img)
+
+
+def _read_exr_channel0(path: Path) -> np.ndarray:
+    return _read_exr(path)[..., 0]
 
 
 def _find_output(out_dir: Path, prefix: str, item: str, suffix: str) -> Path:
@@ -505,6 +524,8 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
             N = norm.to_normalised_matrix
             radius = float(np.max(np.linalg.norm(norm.to_normalised(verts), axis=1)))
             scene = bpy.data.scenes.new("UniPixie views")
+            if settings.passes:
+                render_passes.prepare_pass_materials(meshes)
             for obj, mesh, matrix in meshes:
                 copy = bpy.data.objects.new(f"UniPixie view copy {obj.name}", mesh)
                 copy.matrix_world = _matrix(N @ matrix)
@@ -527,7 +548,14 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
             with _cycles_device(settings.device if settings.engine == "cycles" else "cpu") as cycles_device:
                 _setup_render(scene, settings, cycles_device)
                 colour_node, depth_node = _setup_compositor(scene, tmp_dir)
+                pass_node = None
+                if settings.passes:
+                    tree = scene.compositing_node_group
+                    layers = next(n for n in tree.nodes if n.bl_idname == "CompositorNodeRLayers")
+                    pass_node = render_passes.setup_pass_outputs(scene, tree, layers, tmp_dir)
                 V, R = settings.view_count, settings.resolution
+                passes = {name: np.zeros((V, R, R, c), dtype=np.float32)
+                          for name, c in render_passes.PASS_CHANNELS.items()} if settings.passes else {}
                 images = np.empty((V, R, R, 3), dtype=np.float32)
                 depths = np.empty((V, R, R), dtype=np.float32)
                 bg = np.asarray(settings.background, dtype=np.float32)
@@ -536,6 +564,8 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
                     prefix = f"view{v:03d}_"
                     colour_node.file_name = prefix
                     depth_node.file_name = prefix
+                    if pass_node is not None:
+                        pass_node.file_name = prefix
                     with quiet_blender_output() as log_tail:
                         try:
                             bpy.ops.render.render(write_still=False, scene=scene.name)
@@ -547,11 +577,16 @@ def render_job(objects, settings: RenderSettings | None = None) -> Generator[tup
                     images[v] = rgba[..., :3] * alpha + bg * (1.0 - alpha)
                     z = _read_exr_channel0(_find_output(tmp_dir, prefix, "depth", ".exr"))
                     depths[v] = np.where((z > 0) & (z < cam_data.clip_end), z, np.inf)
+                    if pass_node is not None:
+                        raw = render_passes.read_passes(tmp_dir, prefix, _read_exr, _find_output)
+                        for name, px in render_passes.unpremultiplied(raw, rgba[..., 3], depths[v]).items():
+                            passes[name][v] = px
                     yield (v + 1) / V, f"view {v + 1}/{V}"
         meta = {"engine": settings.engine, "render_settings": settings.key(),
                 "objects": [o.name for o in objs], "normalisation": norm.to_dict(),
                 "camera_distance": distance, "subject_radius": radius, "lens_mm": lens}
-        return Views(images=images, depth=depths, intrinsics=K, cam_to_world=c2w, normalisation=N, meta=meta)
+        return Views(images=images, depth=depths, intrinsics=K, cam_to_world=c2w, normalisation=N, meta=meta,
+                     passes=passes)
     finally:
         remove_new_ids(before)
         shutil.rmtree(tmp_dir, ignore_errors=True)

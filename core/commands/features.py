@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 NAME = "features"
-HELP = "render an object's views, extract dense CLIP features and lift them into the 64³ feature grid"
+HELP = "render an object's views, extract dense features (CLIP, offline ViT or render-pass appearance) and lift them into the 64³ feature grid"
 EXAMPLES = """  unipixie features chair.glb --out chair_grid.npz --clip-weights ~/models/ViT-B-16/
   unipixie features scene.blend --object Teapot --out teapot.npz --offline-features --sheet views.png --slices grid.png
   unipixie features bunny.ply --out bunny.npz --offline-features --engine workbench --views 12 --resolution 160
+  unipixie features chair.glb --out chair_app.npz --extractor appearance+vit
   UNIPIXIE_CLIP_WEIGHTS=~/models/open_clip_pytorch_model.bin unipixie features cup.obj --out cup.npz --device cuda"""
 
 
@@ -37,6 +38,12 @@ def add_arguments(p):
     src.add_argument("--offline-features", action="store_true",
                      help="use the seeded untrained offline ViT (offline-random-vit-w32, D = 32; NOT CLIP; what the "
                           "shipped demo model is trained on)")
+    from ..extractors import EXTRACTORS
+
+    p.add_argument("--extractor", choices=tuple(EXTRACTORS), metavar="NAME",
+                   help="the feature extractor: " + "; ".join(f"{k}: {v[1]}" for k, v in EXTRACTORS.items())
+                        + " (default clip, or offline with --offline-features; the appearance ones need "
+                          "--engine cycles and no weights)")
     p.add_argument("--device", type=_common.device, default="cpu", help="torch device for features and lifting "
                                                                         "(cpu, cuda, auto; default cpu)")
     p.add_argument("--sheet", metavar="PNG", help="also write a contact sheet of the rendered views")
@@ -65,11 +72,13 @@ def run(args) -> int:
     for path, what in outputs:  # before rendering: every output can be written and is not the input
         refuse_overwriting_inputs(path, [args.object], what=what)
         check_writable(path, what=what)
+    if args.extractor and args.extractor != "clip" and args.clip_weights:
+        raise UserError(f"--clip-weights is for the CLIP extractor, not --extractor {args.extractor}")
     options = FeatureOptions(view_count=args.views, resolution=args.resolution, engine=args.engine,
                              samples=args.samples, render_device=args.render_device,
                              offline=args.offline_features, clip_weights=args.clip_weights, device=args.device,
-                             use_cache=not args.no_cache)
-    if not args.offline_features:
+                             use_cache=not args.no_cache, extractor=args.extractor or "")
+    if options.extractor_name == "clip":
         from ..clip_features import resolve_clip_weights
 
         resolve_clip_weights(args.clip_weights)          # fail before rendering when the weights are missing
@@ -114,7 +123,9 @@ def _render_and_write(args, out, options) -> int:
         views.save(Path(args.save_views).expanduser())
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    label = grid.feature_model + ("" if grid.meta.get("is_clip", True) else " (offline random ViT, not CLIP)")
+    from ..extractors import label as extractor_label
+
+    label = extractor_label(grid.feature_model)
     print(f"{out}: {int(grid.occupancy.sum())} occupied voxels of {grid.geometry.resolution}³, features "
           f"{grid.features.shape[0]}×{grid.dim} from {label}; "
           f"{100 * grid.meta.get('painted_fraction_of_surface', 0):.1f} % of surface voxels seen"

@@ -40,6 +40,7 @@ def _expected(checkpoint):
 def run(args) -> int:
     from .. import clip_features as cf
     from ..errors import UserError
+    from ..extractors import description, needs_weights
 
     ckpt, expected, problem = _expected(args.checkpoint)
     if args.checkpoint and ckpt is None:
@@ -48,13 +49,13 @@ def run(args) -> int:
         return _status(ckpt, expected, problem)
     model = args.model
     if not model:
-        if expected and expected != cf.OFFLINE_FEATURE_MODEL:
+        if expected and needs_weights(expected):
             model = expected
         else:
             model = cf.CLIP_MODEL
             if expected:
-                print(f"note: the model in {ckpt} expects {expected!r} features (the offline extractor, no weights "
-                      f"needed); fetching {model} {cf.OPENCLIP_PRETRAINED[model]} for CLIP features "
+                print(f"note: the model in {ckpt} expects {expected!r} features ({description(expected)}, no "
+                      f"weights needed); fetching {model} {cf.OPENCLIP_PRETRAINED[model]} for CLIP features "
                       "('unipixie features', 'unipixie dataset build --clip-weights', models trained on CLIP)")
     from ..weights import fetch_weights, weights_source
 
@@ -72,12 +73,15 @@ def run(args) -> int:
 def _status(ckpt, expected, problem) -> int:
     from .. import clip_features as cf
     from ..errors import UserError
+    from ..extractors import description, needs_weights
 
     if expected is None:
         print(f"model: {problem}")
     elif expected == cf.OFFLINE_FEATURE_MODEL:
         print(f"model {ckpt}: expects {expected} features (the offline extractor, a seeded untrained ViT: no weights "
               "needed, not CLIP)")
+    elif not needs_weights(expected):
+        print(f"model {ckpt}: expects {expected} features ({description(expected)}: no weights needed)")
     else:
         try:
             where = cf.resolve_clip_weights(None, model=expected)

@@ -120,7 +120,9 @@ class PipelineSettings:
         """The feature model Features extracts with: the one the checkpoint was trained on (its
         ``feature_recipe.json``'s ``extractor``, else its config's ``feature_model``), so the model always sees
         the features it was trained on.  Without an installed checkpoint: CLIP ViT-B-16 when CLIP weights are
-        set, else the offline extractor (``offline-random-vit-w32``, not CLIP)."""
+        set, else the offline extractor (``offline-random-vit-w32``, not CLIP).  A model trained on the
+        appearance features (``appearance-gbuffer-v1``, alone or with the offline ViT) gets them, rendered with
+        Cycles' passes."""
         try:
             ckpt = resolve_checkpoint(self.checkpoint)
         except UserError:
@@ -129,13 +131,14 @@ class PipelineSettings:
 
     def feature_options(self) -> FeatureOptions:
         from .. import clip_features as cf
+        from .. import extractors
 
         extractor = self.resolved_extractor()
-        offline = extractor == cf.OFFLINE_FEATURE_MODEL
+        name = extractors.name_of(extractor)
         return FeatureOptions(view_count=self.view_count, resolution=self.resolution, engine=self.engine,
-                              samples=self.samples, render_device=self.render_device, offline=offline,
-                              clip_weights=self.clip_weights or None, clip_model=cf.CLIP_MODEL if offline else extractor,
-                              device=self.device)
+                              samples=self.samples, render_device=self.render_device, offline=name == "offline",
+                              extractor=name, clip_weights=self.clip_weights or None,
+                              clip_model=extractor if name == "clip" else cf.CLIP_MODEL, device=self.device)
 
     def resolved_sweep_count(self) -> int:
         from ..model.inference import DEFAULT_SWEEP_COUNT
@@ -204,6 +207,7 @@ def check_settings(checkpoint: str = "", clip_weights: str = "", cache_dir: str 
     import os
 
     from .. import clip_features as cf
+    from .. import extractors
 
     problems = []
     try:
@@ -221,7 +225,7 @@ def check_settings(checkpoint: str = "", clip_weights: str = "", cache_dir: str 
             except UserError as exc:
                 problems.append(f"Model checkpoint: {exc}")
                 extracting = trained_on
-            if extracting == cf.OFFLINE_FEATURE_MODEL:
+            if not extractors.needs_weights(extracting):
                 if clip_weights:
                     problems.append(f"Model checkpoint: it was trained on {trained_on!r} features (D = {width}), which "
                                     "need no CLIP weights, so the 'CLIP weights' set are not used; clear 'CLIP weights' "
@@ -263,6 +267,7 @@ def extractor_summary(checkpoint: str = "", clip_weights: str = "") -> tuple[str
     extractor the model expects and whether its weights are there, and ``fetch`` is the CLIP feature model whose
     weights are missing and can be fetched (``""`` when nothing is to fetch)."""
     from .. import clip_features as cf
+    from .. import extractors
 
     try:
         ckpt = resolve_checkpoint(checkpoint)
@@ -272,6 +277,8 @@ def extractor_summary(checkpoint: str = "", clip_weights: str = "") -> tuple[str
         return f"model: {exc}", ""
     if name == cf.OFFLINE_FEATURE_MODEL:
         return f"{ckpt.name} expects {name} features (D = {width}): the offline ViT, no weights needed, not CLIP", ""
+    if not extractors.needs_weights(name):
+        return f"{ckpt.name} expects {name} features (D = {width}): {extractors.description(name)}, no weights needed", ""
     try:
         where = cf.resolve_clip_weights(clip_weights or None, model=name)
     except UserError:

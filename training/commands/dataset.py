@@ -39,6 +39,12 @@ def add_arguments(p):
                                                             "offline extractor")
     src.add_argument("--offline-features", action="store_true", default=True,
                      help="the seeded untrained offline ViT (offline-random-vit-w32, NOT CLIP; the default)")
+    from ...core.extractors import EXTRACTORS
+
+    b.add_argument("--extractor", choices=tuple(EXTRACTORS), metavar="NAME",
+                     help="build with this feature extractor (" + ", ".join(EXTRACTORS) + "); appearance and "
+                          "appearance+vit read Cycles' render passes (base colour, roughness, metallic, normal): "
+                          "use them with --engine cycles")
     b.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST", help="split fractions (default 0.8,0.1,0.1)")
     b.add_argument("--frames", type=_common.positive_int, default=30, help="frames of the ground-truth clip (default 30)")
     b.add_argument("--fps", type=_common.positive_number, default=60.0, help="frame rate of the clip (default 60)")
@@ -101,12 +107,16 @@ def run(args) -> int:
             raise UserError(f"--classes {args.classes!r}: an empty class name; give names separated by commas (or "
                             "leave --classes out for all ten)")
         kw = {"classes": classes} if classes else {}
+        if args.extractor and args.extractor != "clip" and args.clip_weights:
+            raise UserError(f"--clip-weights is for the CLIP extractor, not --extractor {args.extractor}")
         settings = dataset.BuildSettings(seed=args.seed, resolution=args.resolution, views=args.views,
                                          render_resolution=args.render_resolution, engine=args.engine,
-                                         samples=args.samples, offline_features=args.clip_weights is None,
+                                         samples=args.samples,
+                                         offline_features=args.clip_weights is None and not args.extractor,
                                          clip_weights=args.clip_weights,
                                          feature_device="cpu" if args.device == "auto" else args.device,
-                                         split=split, ground_truth=_gt_settings(args).to_dict(), **kw)
+                                         split=split, ground_truth=_gt_settings(args).to_dict(),
+                                         extractor=args.extractor or "", **kw)
         import importlib.util
 
         if importlib.util.find_spec("bpy") is None:
