@@ -316,7 +316,6 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
     warm_up = KernelWarmUp(device).start()
 
     with registered_properties():
-        pio.ensure_model_material()
         # 1. objects and scene --------------------------------------------------------------
         p = stages.sub("objects", "building the demo objects and the scene")
         ds.reset(plan.frames, plan.fps)
@@ -391,7 +390,6 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
                                + (f", {workers} at a time" if workers > 1 else "") + ")")
         planned = []
         for obj, solver, alpha in jobs:
-            pio.sync_plan(obj, settings)
             planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, say)))
         planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first (BAKE_ORDER)
         bakes, failed = [], []

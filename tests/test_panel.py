@@ -90,6 +90,8 @@ def test_every_panel_operator_in_order_leaves_its_data(panel):
     from unipixie.core import pipeline as core
     from unipixie.core.blender_io import bake as bio
     from unipixie.core.blender_io import field_view
+    from unipixie.core.blender_io import pipeline as pio
+    from unipixie.unipixie_addon.operators_pipeline import pipeline_settings
 
     bpy.ops.mesh.primitive_plane_add(size=2.0)
     ground = bpy.context.active_object
@@ -124,7 +126,7 @@ def test_every_panel_operator_in_order_leaves_its_data(panel):
 
     s.alpha = 0.37
     assert bpy.ops.unipixie.refine_alpha() == {"FINISHED"}
-    plan = core.get_plan(obj.name)
+    plan = pio.plan_of(obj, pipeline_settings(bpy.context, obj))
     assert core.refined_path(plan, 0.37, ("mpm", "lbs", "spring_mass")).is_file()
 
     s.solver = "spring_mass"
@@ -312,9 +314,10 @@ def test_edits_make_steps_stale_and_objects_keep_their_own_state(panel, monkeypa
 # --------------------------------------------------------------------------- save / reopen, undo
 def test_reopened_file_finds_cached_results_and_bakes_from_them(panel, tmp_path):
     bpy = panel
-    from unipixie.core import pipeline as core
     from unipixie.core.blender_io import bake as bio
     from unipixie.core.blender_io import field_view
+    from unipixie.core.blender_io import pipeline as pio
+    from unipixie.unipixie_addon.operators_pipeline import pipeline_settings
 
     obj = _rod(bpy, "Kept")
     obj.unipixie.solver = "spring_mass"
@@ -324,11 +327,10 @@ def test_reopened_file_finds_cached_results_and_bakes_from_them(panel, tmp_path)
     assert bpy.ops.unipixie.toggle_field() == {"FINISHED"}
     path = tmp_path / "kept.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
-    core.set_plan("Kept", None)                      # as in a new session
     bpy.ops.wm.open_mainfile(filepath=str(path))     # the load handler refreshes every pipeline object
     obj = bpy.data.objects["Kept"]
     assert _states(obj) == ["done", "done", "done", "not done"]
-    assert core.get_plan("Kept") is not None
+    assert pio.plan_of(obj, pipeline_settings(bpy.context, obj)) is not None   # the bake's plan, from the record
     field_view._CACHE.clear()
     obj.unipixie.alpha = 0.9                         # recolours the saved field display from the cached sweep
     assert field_view.corner_colours(obj) is not None

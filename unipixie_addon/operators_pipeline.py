@@ -4,7 +4,9 @@ Operators (all on the active object, as modal jobs: progress bar, status text, *
 errors as reports and in the panel):
 
 * ``unipixie.pipeline_step`` (``step`` = render / features / predict / bake) — one step of
-  :mod:`unipixie.core.blender_io.pipeline`.  Predict makes the model the bake's material source.
+  :mod:`unipixie.core.blender_io.pipeline`.  Predict makes the model the bake's material source.  Its bake is
+  :class:`BakeJob`, the one bake of the panel: the *Simulate & bake* sub-panel's ``unipixie.bake``
+  (:mod:`.operators_bake`) runs the same job.
 * ``unipixie.run_all`` — every step that is not done, in order, as one job.
 * ``unipixie.refine_alpha`` — exact inference at the slider's α (cached; the bake at that α uses it).
 * ``unipixie.toggle_field`` — the material field over the object, coloured by log E, with a legend.
@@ -72,8 +74,8 @@ def _valid(obj) -> bool:
 
 
 def refresh_object(obj, context=None, geometry: bool = True) -> dict:
-    """Recompute ``obj``'s step states into ``obj.unipixie.state_<step>`` / ``reason_<step>``, tell bakes
-    where its prediction is, and update the field summary.  ``geometry=False`` reuses the last
+    """Recompute ``obj``'s step states into ``obj.unipixie.state_<step>`` / ``reason_<step>`` and update the
+    field summary.  ``geometry=False`` reuses the last
     fingerprint (for setting changes such as α).  Returns ``{step: StepState}``."""
     if not _valid(obj):
         return {}
@@ -93,7 +95,6 @@ def refresh_object(obj, context=None, geometry: bool = True) -> dict:
         for step, st in states.items():
             _set(s, f"state_{step}", st.state)
             _set(s, f"reason_{step}", st.reason)
-        pio.sync_plan(obj, settings)
         summary = ""
         sweep_path = pio.read_record(obj).file("predict", "sweep")
         if sweep_path is not None:
@@ -200,7 +201,35 @@ class _ObjectJob(JobOperator):
         _after_job(self._object_name, context)
 
 
-class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
+class BakeJob(_ObjectJob):
+    """The panel's one bake job: :func:`unipixie.core.blender_io.pipeline.bake_step` on the active object — its
+    bake settings, and when its material source is the model, its own prediction at α (the source carries the
+    object's plan).  Progress, Esc (nothing half-written is kept) and undo as every job; the pipeline step
+    ``bake`` and ``unipixie.bake`` both run it."""
+
+    def bake_job(self, context, **overrides):
+        obj, settings = self._begin(context, "bake")
+        try:
+            report = yield from pio.bake_step(obj, settings, context.scene, **overrides)
+        finally:
+            _after_job(self._object_name, context)
+        return report
+
+    def finish_bake(self, context, report):
+        for note in report.notes:
+            self.report({"WARNING"}, note)
+        self.report({"INFO"}, report.summary())      # the object's status is the bake's ("baked: …")
+        _redraw(context)
+        return {"FINISHED"}
+
+    def on_cancel(self, context):
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is not None:
+            obj.unipixie.status = "bake cancelled: nothing was written"
+        _after_job(self._object_name, context)
+
+
+class UNIPIXIE_OT_pipeline_step(BakeJob, bpy.types.Operator):
     """Run one step of the UniPixie pipeline on the active object"""
 
     bl_idname = "unipixie.pipeline_step"
@@ -214,17 +243,21 @@ class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
         return STEP_DESCRIPTIONS[properties.step]
 
     def make_job(self, context):
+        if self.step == "bake":
+            return (yield from self.bake_job(context))
         obj, settings = self._begin(context, self.step)
         try:
-            if self.step == "bake":
-                result = yield from pio.bake_step(obj, settings, context.scene)
-            else:
-                result = yield from pio.STEP_JOBS[self.step](obj, settings)
+            result = yield from pio.STEP_JOBS[self.step](obj, settings)
         finally:
             _after_job(self._object_name, context)
         return result
 
+    def on_cancel(self, context):
+        (BakeJob if self.step == "bake" else _ObjectJob).on_cancel(self, context)
+
     def finish(self, context, result):
+        if self.step == "bake":
+            return self.finish_bake(context, result)
         obj = bpy.data.objects.get(self._object_name)
         if self.step == "render":
             msg = f"views of '{self._object_name}' in {result}"
@@ -243,10 +276,6 @@ class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
                     sweep = pio.read_record(obj).file("predict", "sweep")
                     field_view.show_field(obj, sweep, obj.unipixie.alpha)
                 refresh_object(obj, context, geometry=False)
-        else:
-            for note in result.notes:
-                self.report({"WARNING"}, note)
-            msg = result.summary()
         if obj is not None:
             obj.unipixie.status = f"{core.STEP_LABELS[self.step]}: done"
         self.report({"INFO"}, msg)
@@ -447,7 +476,6 @@ def register():
     for handlers, fn in _HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
-    pio.ensure_model_material()
     try:
         bpy.context.window_manager.unipixie_cuda_available = core.cuda_device_count() > 0
         store_extractor_info(bpy.context)
@@ -456,7 +484,6 @@ def register():
 
 
 def unregister():
-    pio.release_model_material()
     for handlers, fn in _HANDLERS:
         if fn in handlers:
             handlers.remove(fn)
