@@ -54,6 +54,33 @@ def _activate(bpy, obj):
     obj.select_set(True)
 
 
+def _ball(radius: float = 0.305):
+    """(64, 64, 64) occupancy of a ball in the model's unit-cube grid (radius 0.305: ~31k voxels)."""
+    from unipixie.core.normalise import unit_cube_grid
+
+    R = unit_cube_grid().resolution
+    c = (np.stack(np.meshgrid(*[np.arange(R)] * 3, indexing="ij"), -1) + 0.5) / R - 0.5
+    return np.sum(c ** 2, axis=-1) < radius ** 2
+
+
+def _show_sweep(bpy, obj, path, occ, logE):
+    """Record on ``obj`` an α sweep at 11 α values (``logE``: (11, K) log10 E over ``occ``, saved to ``path``) as its
+    prediction and show its field; returns the sweep."""
+    from unipixie.core import pipeline as core
+    from unipixie.core.blender_io import pipeline as pio
+    from unipixie.core.model.sweep import AlphaSweep
+    from unipixie.core.normalise import unit_cube_grid
+
+    sweep = AlphaSweep(np.linspace(0, 1, 11), unit_cube_grid(), occ, log10_E=logE,
+                       log10_density=np.full_like(logE, 3.0), nu=np.full_like(logE, 0.3),
+                       material=np.zeros(logE.shape, np.int16))
+    rec = core.PipelineRecord()
+    rec.set("predict", {"inputs": {}, "sweep": str(sweep.save(path))})
+    pio.write_record(obj, rec)
+    assert bpy.ops.unipixie.toggle_field() == {"FINISHED"}
+    return sweep
+
+
 def _draw_calls(bpy) -> list:
     """The main panel's draw() through a stand-in layout that records ("prop" | "operator" | "label", name)
     and checks every property and operator it is given exists."""
@@ -196,29 +223,17 @@ def test_alpha_slider_recolours_from_the_sweep_in_under_50_ms_with_a_monotone_le
     bpy = panel
     from unipixie.core import pipeline as core
     from unipixie.core.blender_io import field_view
-    from unipixie.core.blender_io import pipeline as pio
-    from unipixie.core.model.sweep import AlphaSweep
-    from unipixie.core.normalise import unit_cube_grid
 
     # a realistic voxel count: a ball of ~31k voxels; log10 E rises with α (and varies over the voxels)
-    geo = unit_cube_grid()
-    R = geo.resolution
-    c = (np.stack(np.meshgrid(*[np.arange(R)] * 3, indexing="ij"), -1) + 0.5) / R - 0.5
-    occ = np.sum(c ** 2, axis=-1) < 0.305 ** 2
+    occ = _ball()
     K = int(occ.sum())
     assert 28_000 < K < 34_000
     alphas = np.linspace(0, 1, 11)
     spread = np.random.default_rng(0).uniform(-0.3, 0.3, K)
     logE = (4.5 + 2.0 * alphas[:, None] + spread[None, :]).astype(np.float32)
-    sweep = AlphaSweep(alphas, geo, occ, log10_E=logE, log10_density=np.full_like(logE, 3.0),
-                       nu=np.full_like(logE, 0.3), material=np.zeros(logE.shape, np.int16))
-    path = sweep.save(tmp_path / "sweep.npz")
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.5)
     obj = bpy.context.active_object
-    rec = core.PipelineRecord()
-    rec.set("predict", {"inputs": {}, "sweep": str(path)})
-    pio.write_record(obj, rec)
-    assert bpy.ops.unipixie.toggle_field() == {"FINISHED"}
+    sweep = _show_sweep(bpy, obj, tmp_path / "sweep.npz", occ, logE)
 
     def mean_luminance():
         col = field_view.corner_colours(obj)
@@ -421,27 +436,15 @@ def test_alpha_slider_on_a_100k_vertex_object_neither_refingerprints_nor_takes_5
     2.0–8.4 ms wall, 3.2–3.4 ms CPU, CPU at most 4.3 ms; 3.7–4.0 ms CPU, at most 7.6, when every move also
     refreshed the states)."""
     bpy = panel
-    from unipixie.core import pipeline as core
     from unipixie.core.blender_io import pipeline as pio
-    from unipixie.core.model.sweep import AlphaSweep
-    from unipixie.core.normalise import unit_cube_grid
 
-    geo = unit_cube_grid()
-    R = geo.resolution
-    c = (np.stack(np.meshgrid(*[np.arange(R)] * 3, indexing="ij"), -1) + 0.5) / R - 0.5
-    occ = np.sum(c ** 2, axis=-1) < 0.305 ** 2
+    occ = _ball()
     alphas = np.linspace(0, 1, 11)
     logE = (4.5 + 2.0 * alphas[:, None] + np.zeros(int(occ.sum()))[None]).astype(np.float32)
-    sweep = AlphaSweep(alphas, geo, occ, log10_E=logE, log10_density=np.full_like(logE, 3.0),
-                       nu=np.full_like(logE, 0.3), material=np.zeros(logE.shape, np.int16))
-    path = sweep.save(tmp_path / "sweep.npz")
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.5, segments=400, ring_count=250)
     obj = bpy.context.active_object
     assert len(obj.data.vertices) > 99_000
-    rec = core.PipelineRecord()
-    rec.set("predict", {"inputs": {}, "sweep": str(path)})
-    pio.write_record(obj, rec)
-    assert bpy.ops.unipixie.toggle_field() == {"FINISHED"}
+    _show_sweep(bpy, obj, tmp_path / "sweep.npz", occ, logE)
     obj.unipixie.alpha = 0.0                       # warm-up: the field's voxel map, the fingerprint
     hashed = []
     real_fingerprint = pio.fingerprint
@@ -461,27 +464,15 @@ def test_a_slider_move_only_recolours_and_the_states_follow_once_it_rests(panel,
     the object's record nor refreshes the step states.  Those follow once, from ``refresh_object``, when the slider
     has rested (the timer; ``settle_alpha`` here, where timers do not run)."""
     bpy = panel
-    from unipixie.core import pipeline as core
     from unipixie.core.blender_io import field_view
     from unipixie.core.blender_io import pipeline as pio
-    from unipixie.core.model.sweep import AlphaSweep
-    from unipixie.core.normalise import unit_cube_grid
     from unipixie.unipixie_addon import operators_pipeline as ops
 
-    geo = unit_cube_grid()
-    occ = np.zeros((geo.resolution,) * 3, bool)
-    occ[24:40, 24:40, 24:40] = True
-    alphas = np.linspace(0, 1, 11)
-    logE = (4.0 + 3.0 * alphas[:, None] + np.zeros(int(occ.sum()))[None]).astype(np.float32)
-    sweep = AlphaSweep(alphas, geo, occ, log10_E=logE, log10_density=np.full_like(logE, 3.0),
-                       nu=np.full_like(logE, 0.3), material=np.zeros(logE.shape, np.int16))
-    path = sweep.save(tmp_path / "sweep.npz")
+    occ = _ball(0.15)
+    logE = (4.0 + 3.0 * np.linspace(0, 1, 11)[:, None] + np.zeros(int(occ.sum()))[None]).astype(np.float32)
     bpy.ops.mesh.primitive_cube_add(size=0.2)
     obj = bpy.context.active_object
-    rec = core.PipelineRecord()
-    rec.set("predict", {"inputs": {}, "sweep": str(path)})
-    pio.write_record(obj, rec)
-    assert bpy.ops.unipixie.toggle_field() == {"FINISHED"}
+    _show_sweep(bpy, obj, tmp_path / "sweep.npz", occ, logE)
     bpy.ops.unipixie.refresh_pipeline()
     obj.unipixie.alpha = 0.0                            # warm-up: the field's voxel map
     ops.settle_alpha()

@@ -24,4 +24,5 @@ from .record import BAKE_RECORD_FORMAT, BAKE_RECORD_KEY, effects_to_json, make_r
 from .simulation import FrameProgress, SimulationResult, check_trajectory, lbs_vertex_weights, simulate
 from .sources import (DEFAULT_HOMOGENEOUS, MATERIAL_RULE, MATERIAL_SOURCE_LABELS, MATERIAL_SOURCES, MODEL_HEADS,
                       FieldFileSource, HomogeneousSource, MaterialSource, ModelSource, ResolvedMaterial,
-                      material_from_prediction, material_source_from_dict, plan_material, predict_material)
+                      material_from_prediction, material_source_from_dict, no_prediction, plan_material,
+                      predict_material)

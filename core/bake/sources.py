@@ -219,6 +219,12 @@ def predict_material(obj: BakeObject, features, alpha: float, solver: str, check
     return res
 
 
+def no_prediction(object_name: str) -> UserError:
+    """The error for a model material bake of an object that has no prediction (no plan) yet."""
+    return UserError(f"object '{object_name}' has no predicted material yet: run Predict in the UniPixie panel "
+                     "(after Render views and Features), or bake with a homogeneous material or a field file")
+
+
 def plan_material(obj: BakeObject, alpha: float, solver: str, plan: Optional[ModelPlan],
                   solver_heads: bool = False) -> ResolvedMaterial:
     """The model's material for ``obj`` at ``alpha`` for ``solver`` from the object's own prediction ``plan``
@@ -227,8 +233,7 @@ def plan_material(obj: BakeObject, alpha: float, solver: str, plan: Optional[Mod
     ``plan`` ``None`` (no prediction yet) is a :class:`UserError` naming the remedy; ``solver_heads``: see
     :func:`material_from_prediction`."""
     if plan is None:
-        raise UserError(f"object '{obj.name}' has no predicted material yet: run Predict in the UniPixie panel "
-                        "(after Render views and Features), or bake with a homogeneous material or a field file")
+        raise no_prediction(obj.name)
     pred, how, _ = exact_prediction(plan, alpha, MODEL_HEADS[solver])
     res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
     res.description = f"model at α {float(alpha):g} ({how}, {Path(plan.checkpoint).name}, seed {plan.seed})"

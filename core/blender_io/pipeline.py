@@ -200,12 +200,13 @@ def model_source(obj, settings: core.PipelineSettings, source):
     :class:`UserError` naming the remedy (before any simulation starts)."""
     import dataclasses
 
+    from ..bake import no_prediction
+
     if source.kind != "model" or source.features:
         return source
     plan = plan_of(obj, settings)
     if plan is None:
-        raise UserError(f"object '{obj.name}' has no predicted material yet: run Predict in the UniPixie panel "
-                        "(after Render views and Features), or bake with a homogeneous material or a field file")
+        raise no_prediction(obj.name)
     return dataclasses.replace(source, plan=plan)
 
 
