@@ -12,6 +12,11 @@ call (no logic of its own); see the docs/ page named beside it::
                         [api.parse_effect("linear_drag:c=0.5")])
     report = api.diagnose(api.load_measurement("m.npz"), "spring_mass", out_dir="report")    # docs/diagnosis.md
 
+A bake with the model's material carries what it needs: ``api.ModelSource(features="grid.npz")`` (the model runs
+on that grid) or ``api.ModelSource(plan=api.ModelPlan(grid=..., sweep=..., checkpoint=...))`` (an object's own
+prediction, e.g. ``core.blender_io.pipeline.plan_of(obj, settings)``), in ``api.BakeOptions(material=...,
+alpha=0.5)`` (docs/baking.md).
+
 Blender-only entry points (``bake_object``, ``clear_bake``, ``compute_features``
 on a ``bpy`` object) need the bpy module; importing this module does not
 import it — each attribute is resolved on first use.
@@ -50,6 +55,8 @@ _EXPORTS = {
     # baking (docs/baking.md)
     "BakeOptions": ("..core.bake", "BakeOptions"),
     "HomogeneousSource": ("..core.bake", "HomogeneousSource"),
+    "ModelSource": ("..core.bake", "ModelSource"),
+    "ModelPlan": ("..core.model.plan", "ModelPlan"),
     "bake_object": ("..core.blender_io.bake", "bake_object"),
     "clear_bake": ("..core.blender_io.bake", "clear_bake"),
     "scenario_from_scene": ("..core.blender_io.bake", "scenario_from_scene"),

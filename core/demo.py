@@ -316,7 +316,6 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
     warm_up = KernelWarmUp(device).start()
 
     with registered_properties():
-        pio.ensure_model_material()
         # 1. objects and scene --------------------------------------------------------------
         p = stages.sub("objects", "building the demo objects and the scene")
         ds.reset(plan.frames, plan.fps)
@@ -391,8 +390,7 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
                                + (f", {workers} at a time" if workers > 1 else "") + ")")
         planned = []
         for obj, solver, alpha in jobs:
-            pio.sync_plan(obj, settings)
-            planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, say)))
+            planned.append((obj, solver, alpha, _solver_settings(obj, solver, alpha, plan, settings, say)))
         planned.sort(key=lambda job: BAKE_ORDER.index(job[1]))       # the longest first (BAKE_ORDER)
         bakes, failed = [], []
 
@@ -552,18 +550,20 @@ def _setup(obj, solver: str, alpha: float, ground, device: str, clamp_group: str
     s.bake_initial_velocity = velocity
 
 
-def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, say) -> dict:
-    """Solver settings of one demo bake; MPM: the grid that fits the plan's compute budget."""
+def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, settings, say) -> dict:
+    """Solver settings of one demo bake; MPM: the grid that fits the plan's compute budget (from the object's
+    predicted material at α: its model plan under the pipeline ``settings``)."""
     if solver == "lbs":
         return dict(plan.lbs_settings)
     if solver == "spring_mass":
         return dict(plan.spring_settings)
     from .blender_io import demo_scene as ds
+    from .bake import plan_material
+    from .blender_io import pipeline as pio
     from .blender_io.bake import read_object
-    from .pipeline import model_material
 
     bo = read_object(obj)
-    field_world = model_material(bo, alpha, "mpm").spec
+    field_world = plan_material(bo, alpha, "mpm", pio.plan_of(obj, settings)).spec
     c = max_wave_speed(field_world)
     cells, cost = mpm_cells_for_budget(c, bo.size, ds.mesh_volume(obj), plan.frames, plan.fps, plan.mpm_budget,
                                        plan.mpm_cells)

@@ -29,6 +29,23 @@ def _check(cond: bool, msg: str) -> None:
         raise UserError(msg)
 
 
+def check_alpha(alpha) -> float:
+    """α, the soft-to-stiff control, as a float in [0, 1] (0 = the softest plausible material, 1 = the stiffest).
+
+    The one check of α: every entry point calls it where α comes in (a bake's :class:`~unipixie.core.bake.
+    BakeOptions` — the panel's, the command line's and manifests' bakes and the Python API's —, the command line's
+    ``--alpha``, the panel's Refine), and everything below trusts the float it returns.  A value outside [0, 1],
+    NaN or not a number is a :class:`UserError`.
+    """
+    try:
+        value = float(alpha)
+    except (TypeError, ValueError):
+        raise UserError(f"α must be a number in [0, 1], got {alpha!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise UserError(f"α must lie in [0, 1], got {value:g}")
+    return value
+
+
 REQUIRED_KEYS = {
     "views": ("images", "depth", "intrinsics", "cam_to_world", "normalisation", "meta"),
     "feature_grid": ("occupancy", "features", "geometry", "feature_model", "meta"),

@@ -128,25 +128,27 @@ def test_field_file_source_maps_the_normalised_field_onto_the_object(tmp_path):
         bake.FieldFileSource(str(tmp_path / "missing.npz")).resolve(obj, 0.5, "mpm")
 
 
-def test_model_source_needs_a_predictor_and_uses_the_registered_one():
+def test_model_source_needs_a_plan_and_uses_the_one_it_carries(monkeypatch):
+    from unipixie.core.bake import sources
+    from unipixie.core.model.plan import ModelPlan
+
     with pytest.raises(UserError, match="needs the UniPixie model"):
         bake.ModelSource().resolve(_cube(), 0.5, "mpm")
     with pytest.raises(UserError, match="needs α"):
         bake.ModelSource().resolve(_cube(), None, "mpm")
     seen = []
+    plan = ModelPlan(grid="g.npz", sweep="s.npz", checkpoint="c")
 
-    def predictor(obj, alpha, solver):
+    def model(obj, alpha, solver, given, solver_heads=False):
         seen.append((obj.name, alpha, solver))
+        assert given is plan
         from unipixie.solvers.material_sampling import HomogeneousMaterial
 
         return bake.ResolvedMaterial(HomogeneousMaterial(1e4 * (1 + 99 * alpha), 0.3, 1000), description="test model")
 
-    bake.register_material_predictor(predictor)
-    try:
-        res = bake.ModelSource().resolve(_cube(), 1.0, "spring_mass")
-        assert res.spec.E == pytest.approx(1e6) and seen == [("Cube", 1.0, "spring_mass")]
-    finally:
-        bake.unregister_material_predictor(predictor)
+    monkeypatch.setattr(sources, "plan_material", model)      # the model, called with the source's own plan
+    res = bake.ModelSource(plan=plan).resolve(_cube(), 1.0, "spring_mass")
+    assert res.spec.E == pytest.approx(1e6) and seen == [("Cube", 1.0, "spring_mass")]
 
 
 # --------------------------------------------------------------------------- options

@@ -196,7 +196,7 @@ def test_check_settings_names_each_problem(tmp_path, tiny_checkpoint, monkeypatc
 
 # --------------------------------------------------------------------------- sweep and the material at α
 def test_predict_sweep_refine_and_model_material(tmp_path, tiny_checkpoint, blob_grid):
-    from unipixie.core.bake import BakeObject
+    from unipixie.core.bake import BakeObject, ModelSource, plan_material
     from unipixie.core.model.inference import get_predictor
     from unipixie.core.types import FeatureGrid, MaterialField
 
@@ -224,8 +224,8 @@ def test_predict_sweep_refine_and_model_material(tmp_path, tiny_checkpoint, blob
     direct = predictor.predict(grid, [0.37], heads=("mpm", "lbs", "spring_mass"), seed=0, steps=4)
     np.testing.assert_allclose(pred.mpm[0].E, direct.mpm[0].E, rtol=1e-5)
     assert core.exact_prediction(plan, 0.37, ("mpm",))[1] == "refined"
-    with pytest.raises(UserError, match="α must lie in"):
-        core.exact_prediction(plan, 1.5, ("mpm",))
+    with pytest.raises(UserError, match="α must lie in"):                # checked where α comes in: the Refine
+        _run(core.refine_job(plan, 1.5))
 
     # the bake's model material: world-space field on the object's bounding box, solver settings per head
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * [0.4, 0.24, 0.2]
@@ -233,19 +233,17 @@ def test_predict_sweep_refine_and_model_material(tmp_path, tiny_checkpoint, blob
                      [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
     obj = BakeObject("Blob", v, tris)
     with pytest.raises(UserError, match="run Predict"):
-        core.model_material(obj, 0.5, "mpm")
-    core.set_plan("Blob", plan)
-    try:
-        res = core.model_material(obj, 0.5, "mpm")
-        assert isinstance(res.spec, MaterialField) and res.spec.meta["space"] == "world"
-        assert res.spec.geometry.voxel_size == pytest.approx(0.4 / 64)
-        assert "from the α sweep" in res.description
-        assert core.model_material(obj, 0.5, "lbs").settings["skinning_params"].shape == (650,)
-        assert "stiffness" not in core.model_material(obj, 1.0, "spring_mass").settings  # the continuum field
-        heads = core.model_material(obj, 1.0, "spring_mass", solver_heads=True)
-        assert heads.settings["stiffness"].shape == (64,)
-    finally:
-        core.set_plan("Blob", None)
+        plan_material(obj, 0.5, "mpm", None)                              # no prediction: no plan
+    source = ModelSource(plan=plan)                                        # the bake's source carries its plan
+    res = source.resolve(obj, 0.5, "mpm")
+    assert isinstance(res.spec, MaterialField) and res.spec.meta["space"] == "world"
+    assert res.spec.geometry.voxel_size == pytest.approx(0.4 / 64)
+    assert "from the α sweep" in res.description
+    assert source.resolve(obj, 0.5, "lbs").settings["skinning_params"].shape == (650,)
+    assert "stiffness" not in source.resolve(obj, 1.0, "spring_mass").settings  # the continuum field
+    heads = ModelSource(plan=plan, solver_heads=True).resolve(obj, 1.0, "spring_mass")
+    assert heads.settings["stiffness"].shape == (64,)
+    assert source.to_dict() == {"source": "model"}                          # the plan is run-time data only
 
     # the panel's refine keeps a file at its α even on a sweep value
     pred, how, p = _run(core.refine_job(plan, 0.5))

@@ -1,8 +1,10 @@
 """Operators "Simulate & bake" / "Clear bake" and the bake sub-panel.
 
-UI only: the work is :func:`unipixie.core.blender_io.bake.bake_steps` (a generator the job runner
-drives: progress bar, status text, Esc cancels and removes anything half-written) and
-:func:`unipixie.core.blender_io.bake.clear_bake`.  Both operators are undoable (Ctrl-Z).
+UI only.  *Simulate & bake* (``unipixie.bake``) is the pipeline's bake step — the same job
+(:class:`~unipixie.unipixie_addon.operators_pipeline.BakeJob`: :func:`unipixie.core.blender_io.pipeline.bake_step`,
+with the object's own prediction when its material source is the model), which the job runner drives
+(progress bar, status text, Esc cancels and removes anything half-written) — with an optional solver override.
+*Clear bake* is :func:`unipixie.core.blender_io.bake.clear_bake`.  Both operators are undoable (Ctrl-Z).
 """
 
 from __future__ import annotations
@@ -10,12 +12,12 @@ from __future__ import annotations
 import bpy
 
 from ..core.blender_io import bake as bio
-from .jobs import JobOperator
+from .operators_pipeline import BakeJob
 from .panels import draw_frame_range
 from .properties import SOLVER_ITEMS
 
 
-class UNIPIXIE_OT_bake(JobOperator, bpy.types.Operator):
+class UNIPIXIE_OT_bake(BakeJob, bpy.types.Operator):
     """Simulate the active mesh with the chosen solver and bake the motion into keyframes"""
 
     bl_idname = "unipixie.bake"
@@ -31,23 +33,10 @@ class UNIPIXIE_OT_bake(JobOperator, bpy.types.Operator):
         return obj is not None and obj.type == "MESH" and obj.mode == "OBJECT"
 
     def make_job(self, context):
-        obj = context.active_object
-        overrides = {} if self.solver == "OBJECT" else {"solver": self.solver}
-        options = bio.options_from_settings(obj, context.scene, **overrides)
-        self._object_name = obj.name
-        report = yield from bio.bake_steps(obj, options, scene=context.scene)
-        return report
+        return (yield from self.bake_job(context, **({} if self.solver == "OBJECT" else {"solver": self.solver})))
 
     def finish(self, context, result):
-        for note in result.notes:
-            self.report({"WARNING"}, note)
-        self.report({"INFO"}, result.summary())
-        return {"FINISHED"}
-
-    def on_cancel(self, context):
-        obj = bpy.data.objects.get(getattr(self, "_object_name", ""))
-        if obj is not None and hasattr(obj, "unipixie"):
-            obj.unipixie.status = "bake cancelled: nothing was written"
+        return self.finish_bake(context, result)
 
 
 class UNIPIXIE_OT_clear_bake(bpy.types.Operator):

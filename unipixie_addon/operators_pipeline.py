@@ -4,7 +4,9 @@ Operators (all on the active object, as modal jobs: progress bar, status text, *
 errors as reports and in the panel):
 
 * ``unipixie.pipeline_step`` (``step`` = render / features / predict / bake) — one step of
-  :mod:`unipixie.core.blender_io.pipeline`.  Predict makes the model the bake's material source.
+  :mod:`unipixie.core.blender_io.pipeline`.  Predict makes the model the bake's material source.  Its bake is
+  :class:`BakeJob`, the one bake of the panel: the *Simulate & bake* sub-panel's ``unipixie.bake``
+  (:mod:`.operators_bake`) runs the same job.
 * ``unipixie.run_all`` — every step that is not done, in order, as one job.
 * ``unipixie.refine_alpha`` — exact inference at the slider's α (cached; the bake at that α uses it).
 * ``unipixie.toggle_field`` — the material field over the object, coloured by log E, with a legend.
@@ -13,10 +15,13 @@ errors as reports and in the panel):
 
 State lives on the object: the pipeline record (an ID property, saved and undone with the object) and
 the panel's ``obj.unipixie.state_<step>`` / ``reason_<step>`` strings, written by
-:func:`refresh_object` — never computed in ``draw()``.
+:func:`refresh_object` — the one place that writes them, never ``draw()`` — after a step, an edit (the depsgraph
+handler, 0.4 s later), undo, a file load, and once the α slider has come to rest (:func:`on_alpha_changed`).
 """
 
 from __future__ import annotations
+
+import time
 
 import bpy
 from bpy.app.handlers import persistent
@@ -46,6 +51,13 @@ _REFRESHING = [False]
 _QUIET: set = set()
 """Objects whose next depsgraph update comes from one of UniPixie's own settings (a property with an update
 callback, such as α, tags the object for re-evaluation), not from an edit: their state is already current."""
+SETTLE_DELAY = 0.3
+"""Seconds the α slider must rest before the step states follow it (a drag moves it once per mouse event)."""
+_SETTLING: dict = {}
+"""Object name → when (``time.monotonic()``) its α last moved, until its states are refreshed."""
+_SWEEPS: dict = {}
+"""Object name → its α sweep file (or ``None``) as of its last :func:`refresh_object`: the slider's summary line
+reads the cached sweep without reading the record."""
 
 
 # --------------------------------------------------------------------------- settings and state
@@ -73,12 +85,13 @@ def _valid(obj) -> bool:
 
 
 def refresh_object(obj, context=None, geometry: bool = True) -> dict:
-    """Recompute ``obj``'s step states into ``obj.unipixie.state_<step>`` / ``reason_<step>``, tell bakes
-    where its prediction is, and update the field summary.  ``geometry=False`` reuses the last
+    """Recompute ``obj``'s step states into ``obj.unipixie.state_<step>`` / ``reason_<step>`` and update the
+    field summary.  ``geometry=False`` reuses the last
     fingerprint (for setting changes such as α).  Returns ``{step: StepState}``."""
     if not _valid(obj):
         return {}
     context = context or bpy.context
+    _SETTLING.pop(obj.name, None)
     _REFRESHING[0] = True
     try:
         settings = pipeline_settings(context, obj)
@@ -94,15 +107,8 @@ def refresh_object(obj, context=None, geometry: bool = True) -> dict:
         for step, st in states.items():
             _set(s, f"state_{step}", st.state)
             _set(s, f"reason_{step}", st.reason)
-        pio.sync_plan(obj, settings)
-        summary = ""
-        sweep_path = pio.read_record(obj).file("predict", "sweep")
-        if sweep_path is not None:
-            try:
-                summary = core.field_summary(core.load_sweep(sweep_path), s.alpha)
-            except UserError as exc:
-                summary = str(exc)
-        _set(s, "field_summary", summary)
+        _SWEEPS[obj.name] = pio.read_record(obj).file("predict", "sweep")
+        _set(s, "field_summary", _summary(obj))
         if s.show_field and field_view.field_object(obj) is None:
             _set(s, "show_field", False)
         return states
@@ -115,8 +121,28 @@ def refresh_all(context=None, geometry: bool = True) -> None:
         refresh_object(obj, context, geometry)
 
 
+def _summary(obj) -> str:
+    """The panel's one line on E at the object's α, from its cached sweep (``""`` without a prediction)."""
+    if obj.name not in _SWEEPS:             # not refreshed yet in this session: read the record once
+        _SWEEPS[obj.name] = pio.read_record(obj).file("predict", "sweep")
+    path = _SWEEPS[obj.name]
+    if path is None:
+        return ""
+    try:
+        return core.field_summary(core.load_sweep(path), obj.unipixie.alpha)
+    except UserError as exc:
+        return str(exc)
+
+
 def on_alpha_changed(obj, context) -> None:
-    """The α slider moved: recolour the field from the cached sweep (no inference) and update the states."""
+    """The α slider moved: recolour the field display and the summary line from the cached sweep — nothing else.
+
+    A drag calls this once per mouse event and Blender has no "released" event for a property, so the step
+    states (which read the record and the bake's settings and record) are not refreshed here.  The move is noted
+    (``_SETTLING``) and a timer, :func:`_refresh_settled`, hands the object to :func:`refresh_object` once α has
+    rested :data:`SETTLE_DELAY` seconds: one refresh per drag, from the one place that writes the states.  A step
+    run, undo and a file load refresh them too; the bake itself always reads α afresh.  In background mode, where
+    timers do not run, :func:`settle_alpha` (or *Refresh states*) does what the timer does."""
     if not _valid(obj):
         return
     _QUIET.add(obj.name)
@@ -126,8 +152,33 @@ def on_alpha_changed(obj, context) -> None:
             field_view.recolour(obj, s.alpha)
         except UserError as exc:
             s.last_error = str(exc)
+    _set(s, "field_summary", _summary(obj))
     if pio.has_record(obj) or s.state_bake != core.NOT_DONE:
-        refresh_object(obj, context, geometry=False)
+        _SETTLING[obj.name] = time.monotonic()
+        if not bpy.app.timers.is_registered(_refresh_settled):
+            bpy.app.timers.register(_refresh_settled, first_interval=SETTLE_DELAY)
+
+
+def settle_alpha(names=None) -> None:
+    """Refresh now the states of the objects whose α moved (``names``; default: all still waiting)."""
+    for name in list(_SETTLING) if names is None else names:
+        _SETTLING.pop(name, None)
+        obj = bpy.data.objects.get(name)
+        if obj is not None:
+            try:
+                refresh_object(obj, geometry=False)
+            except Exception as exc:  # a timer must never break Blender
+                print(f"UniPixie: could not refresh the state of '{name}': {exc}")
+
+
+def _refresh_settled():
+    """The slider's timer: settle the objects whose α has rested :data:`SETTLE_DELAY` s; come back for the others
+    (returns the seconds until the next one is due, or ``None`` when none is left)."""
+    now = time.monotonic()
+    settle_alpha([name for name, moved in _SETTLING.items() if now - moved >= SETTLE_DELAY])
+    if not _SETTLING:
+        return None
+    return max(0.01, SETTLE_DELAY - (now - min(_SETTLING.values())))
 
 
 def on_settings_changed(obj, context) -> None:
@@ -201,7 +252,35 @@ class _ObjectJob(JobOperator):
         _after_job(self._object_name, context)
 
 
-class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
+class BakeJob(_ObjectJob):
+    """The panel's one bake job: :func:`unipixie.core.blender_io.pipeline.bake_step` on the active object — its
+    bake settings, and when its material source is the model, its own prediction at α (the source carries the
+    object's plan).  Progress, Esc (nothing half-written is kept) and undo as every job; the pipeline step
+    ``bake`` and ``unipixie.bake`` both run it."""
+
+    def bake_job(self, context, **overrides):
+        obj, settings = self._begin(context, "bake")
+        try:
+            report = yield from pio.bake_step(obj, settings, context.scene, **overrides)
+        finally:
+            _after_job(self._object_name, context)
+        return report
+
+    def finish_bake(self, context, report):
+        for note in report.notes:
+            self.report({"WARNING"}, note)
+        self.report({"INFO"}, report.summary())      # the object's status is the bake's ("baked: …")
+        _redraw(context)
+        return {"FINISHED"}
+
+    def on_cancel(self, context):
+        obj = bpy.data.objects.get(self._object_name)
+        if obj is not None:
+            obj.unipixie.status = "bake cancelled: nothing was written"
+        _after_job(self._object_name, context)
+
+
+class UNIPIXIE_OT_pipeline_step(BakeJob, bpy.types.Operator):
     """Run one step of the UniPixie pipeline on the active object"""
 
     bl_idname = "unipixie.pipeline_step"
@@ -215,17 +294,21 @@ class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
         return STEP_DESCRIPTIONS[properties.step]
 
     def make_job(self, context):
+        if self.step == "bake":
+            return (yield from self.bake_job(context))
         obj, settings = self._begin(context, self.step)
         try:
-            if self.step == "bake":
-                result = yield from pio.bake_step(obj, settings, context.scene)
-            else:
-                result = yield from pio.STEP_JOBS[self.step](obj, settings)
+            result = yield from pio.STEP_JOBS[self.step](obj, settings)
         finally:
             _after_job(self._object_name, context)
         return result
 
+    def on_cancel(self, context):
+        (BakeJob if self.step == "bake" else _ObjectJob).on_cancel(self, context)
+
     def finish(self, context, result):
+        if self.step == "bake":
+            return self.finish_bake(context, result)
         obj = bpy.data.objects.get(self._object_name)
         if self.step == "render":
             msg = f"views of '{self._object_name}' in {result}"
@@ -243,10 +326,6 @@ class UNIPIXIE_OT_pipeline_step(_ObjectJob, bpy.types.Operator):
                     sweep = pio.read_record(obj).file("predict", "sweep")
                     field_view.show_field(obj, sweep, obj.unipixie.alpha)
                 refresh_object(obj, context, geometry=False)
-        else:
-            for note in result.notes:
-                self.report({"WARNING"}, note)
-            msg = result.summary()
         if obj is not None:
             obj.unipixie.status = f"{core.STEP_LABELS[self.step]}: done"
         self.report({"INFO"}, msg)
@@ -419,6 +498,8 @@ def _on_depsgraph(scene, depsgraph):
 @persistent
 def _on_load(*_args):
     _FINGERPRINTS.clear()
+    _SWEEPS.clear()
+    _SETTLING.clear()
     try:
         bpy.context.window_manager.unipixie_cuda_available = core.cuda_device_count() > 0
         store_extractor_info(bpy.context)
@@ -429,6 +510,7 @@ def _on_load(*_args):
 
 @persistent
 def _on_undo(*_args):
+    _SWEEPS.clear()
     try:
         refresh_all(geometry=True)
     except Exception as exc:
@@ -447,7 +529,6 @@ def register():
     for handlers, fn in _HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
-    pio.ensure_model_material()
     try:
         bpy.context.window_manager.unipixie_cuda_available = core.cuda_device_count() > 0
         store_extractor_info(bpy.context)
@@ -456,12 +537,14 @@ def register():
 
 
 def unregister():
-    pio.release_model_material()
     for handlers, fn in _HANDLERS:
         if fn in handlers:
             handlers.remove(fn)
-    if bpy.app.timers.is_registered(_refresh_pending):
-        bpy.app.timers.unregister(_refresh_pending)
+    for timer in (_refresh_pending, _refresh_settled):
+        if bpy.app.timers.is_registered(timer):
+            bpy.app.timers.unregister(timer)
     _PENDING.clear()
+    _SETTLING.clear()
+    _SWEEPS.clear()
     _FINGERPRINTS.clear()
     _unregister_classes()

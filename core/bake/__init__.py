@@ -23,6 +23,6 @@ from .pc2 import PC2_SIGNATURE, PC2_VERSION, PointCache, read_pc2, write_pc2
 from .record import BAKE_RECORD_FORMAT, BAKE_RECORD_KEY, effects_to_json, make_record, parse_record
 from .simulation import FrameProgress, SimulationResult, check_trajectory, lbs_vertex_weights, simulate
 from .sources import (DEFAULT_HOMOGENEOUS, MATERIAL_RULE, MATERIAL_SOURCE_LABELS, MATERIAL_SOURCES, MODEL_HEADS,
-                      FieldFileSource, HomogeneousSource, MaterialPredictor, MaterialSource, ModelSource,
-                      ResolvedMaterial, material_from_prediction, material_source_from_dict, predict_material,
-                      register_material_predictor, unregister_material_predictor)
+                      FieldFileSource, HomogeneousSource, MaterialSource, ModelSource, ResolvedMaterial,
+                      material_from_prediction, material_source_from_dict, no_prediction, plan_material,
+                      predict_material)

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 from ..errors import UserError, read_json
+from ..types import check_alpha
 from .frames import parse_frame_list, parse_frames
 from .jobs import JOB_KEYS, SCENARIO_OVERRIDE_KEYS, BakeJob, check_job_outputs, expand_jobs
 from .output import ARMATURE_TOLERANCE
@@ -88,11 +89,8 @@ def load_manifest(path, resolve: Optional[Callable[[str], Sequence[str]]] = None
         except UserError as exc:
             raise UserError(str(exc)) from None
         try:
-            for a in alphas:
-                if a is not None and not 0.0 <= float(a) <= 1.0:
-                    raise ValueError
-            alphas = [None if a is None else float(a) for a in alphas]
-        except (TypeError, ValueError):
+            alphas = [None if a is None else check_alpha(a) for a in alphas]
+        except UserError:
             raise UserError(f"{where}: 'alpha' must be a number in [0, 1] or a list of them") from None
         source = material_source_from_dict(material) if "material" in d else None
         if any(a is not None for a in alphas) and source is not None and source.kind != "model":

@@ -1,6 +1,8 @@
 """The bake request: :class:`BakeOptions`, everything a bake needs besides the object and the scenario (solver,
 frames and fps, material source and α, effects, device, output and interpolation, armature tolerance, solver
-settings), checked once when it is made.
+settings), checked once when it is made: the options are every bake's entry (panel, command line, manifests,
+Python API), so α is checked here (:func:`~unipixie.core.types.check_alpha`) and trusted by the material
+sources and the model below.
 
 Uses :mod:`.frames`, :mod:`.sources`, :mod:`.output` and the solvers' registry and effects.
 """
@@ -13,6 +15,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import UserError
+from ..types import check_alpha
 from .frames import FrameRange, parse_frames
 from .output import ARMATURE_TOLERANCE, INTERPOLATIONS, OUTPUT_MODES
 from .sources import HomogeneousSource, MaterialSource
@@ -64,9 +67,7 @@ class BakeOptions:
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise UserError(f"frames per second must be positive, got {self.fps!r}")
         if self.alpha is not None:
-            self.alpha = float(self.alpha)
-            if not 0.0 <= self.alpha <= 1.0:
-                raise UserError(f"α must lie in [0, 1], got {self.alpha:g}")
+            self.alpha = check_alpha(self.alpha)     # the bake's one check of α; everything below trusts it
         parsed = []
         for e in self.effects or []:
             if isinstance(e, str):

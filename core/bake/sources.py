@@ -3,12 +3,14 @@
 cube (:class:`FieldFileSource`), or the model's prediction at α (:class:`ModelSource`).
 
 Each is a :class:`MaterialSource` (``resolve(obj, alpha, solver) -> ResolvedMaterial``); a manifest's
-``material`` value becomes one with :func:`material_source_from_dict`.  The model plugs in either through a
-feature-grid file (:func:`predict_material`, :func:`material_from_prediction`) or through the predictor
-registered with :func:`register_material_predictor` (the add-on's cached prediction).
+``material`` value becomes one with :func:`material_source_from_dict`.  The model's material comes either from
+a feature-grid file (:func:`predict_material`) or from the object's own prediction, which the source carries as
+its ``plan`` (a :class:`~unipixie.core.model.plan.ModelPlan`, built by whoever starts the bake from the object's
+pipeline record: the panel's bake step, ``unipixie bake --alpha``, a script) and which :func:`plan_material`
+reads; both end in :func:`material_from_prediction`.  No process-wide state: a source holds all it needs.
 
-Uses :mod:`.body` (the object), the model (:mod:`unipixie.core.model`), normalisation, the data types and the
-solvers' material registry; nothing else of the bake.
+Uses :mod:`.body` (the object), the model (:mod:`unipixie.core.model`, its plan and exact prediction),
+normalisation, the data types and the solvers' material registry; nothing else of the bake.
 """
 
 from __future__ import annotations
@@ -16,11 +18,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
 from ..errors import UserError
+from ..model.plan import ModelPlan, exact_prediction
 from .body import BakeObject
 
 
@@ -149,41 +152,16 @@ class FieldFileSource(MaterialSource):
         return {"source": "field", "file": str(self.path)}
 
 
-MaterialPredictor = Callable[[BakeObject, float, str], ResolvedMaterial]
-"""``predictor(obj, alpha, solver) -> ResolvedMaterial``: the model's material for an object at α."""
-
-_PREDICTORS: list[MaterialPredictor] = []
-
-
-def register_material_predictor(predictor: MaterialPredictor) -> MaterialPredictor:
-    """Make the model's prediction available to bakes (``material source = model``).
-
-    The predictor receives the object as arrays, α in [0, 1] and the solver name, and returns a
-    :class:`ResolvedMaterial` (a world-space material spec plus solver settings such as LBS
-    skinning parameters).  The latest registration wins.  Usable as a decorator.  In Blender the
-    predictor runs in the bake's worker thread: it must not touch ``bpy`` (read what it needs from
-    Blender before the bake, e.g. into a cache keyed by the object's name).
-    """
-    if not callable(predictor):
-        raise TypeError("a material predictor must be callable")
-    _PREDICTORS.append(predictor)
-    return predictor
-
-
-def unregister_material_predictor(predictor: MaterialPredictor) -> None:
-    if predictor in _PREDICTORS:
-        _PREDICTORS.remove(predictor)
-
-
 @dataclass
 class ModelSource(MaterialSource):
     """The model's material at α.
 
     features: a FeatureGrid file of the object (``unipixie features``); with it, the model in
-        ``checkpoint`` (default: the shipped model) predicts the material here
-        (:func:`material_from_prediction`).  Without it, the predictor registered with
-        :func:`register_material_predictor` is asked (the add-on's cached prediction); with neither,
-        a :class:`UserError` says what is missing.
+        ``checkpoint`` (default: the shipped model) predicts the material here (:func:`predict_material`).
+    plan: without ``features``, the object's own prediction (:class:`~unipixie.core.model.plan.ModelPlan`: its
+        α sweep, feature grid and checkpoint), read by :func:`plan_material`.  With neither, a
+        :class:`UserError` says what is missing.  The plan is run-time data: it is not part of :meth:`to_dict`
+        (the bake record and manifests name the source, not the cache files).
     seed: the model's noise seed (same seed, same material); device: torch device for the model.
     solver_heads: give LBS and spring-mass the material of their own heads (the LBS head's E, ν; the spring
         head's stiffnesses and softness) instead of the MPM head's continuum field, which all three solvers
@@ -195,29 +173,25 @@ class ModelSource(MaterialSource):
     seed: int = 0
     device: str = "cpu"
     solver_heads: bool = False
+    plan: Optional[ModelPlan] = field(default=None, compare=False, repr=False)
     kind = "model"
 
     def resolve(self, obj, alpha, solver):
+        """``alpha``: a float in [0, 1] already checked by the bake's options (:func:`~unipixie.core.types.
+        check_alpha`); ``None`` is refused here (a model material has no meaning without α)."""
         if alpha is None:
             raise UserError("the model's material needs α (a value in [0, 1]); pass --alpha or set α in the panel")
         alpha = float(alpha)
-        if not 0.0 <= alpha <= 1.0:
-            raise UserError(f"α must lie in [0, 1], got {alpha:g}")
         if self.features:
             return predict_material(obj, self.features, alpha, solver, checkpoint=self.checkpoint or None,
                                     seed=self.seed, device=self.device, solver_heads=self.solver_heads)
-        if not _PREDICTORS:
+        if self.plan is None:
             raise UserError(f"material prediction at α = {alpha:g} needs the UniPixie model and the object's feature "
                             "grid, and neither a feature grid (--features GRID.npz from 'unipixie features') nor a "
                             "prediction of the object is available ('unipixie bake --alpha' computes them unless "
                             "--no-auto); bake with a homogeneous material (--E/--nu/--density/--material-class) or a "
                             "material field file (--material-file) instead")
-        predictor = _PREDICTORS[-1]
-        resolved = (predictor(obj, alpha, solver, solver_heads=True) if self.solver_heads
-                    else predictor(obj, alpha, solver))
-        if not isinstance(resolved, ResolvedMaterial):
-            raise TypeError(f"material predictor returned {type(resolved).__name__}, expected ResolvedMaterial")
-        return resolved
+        return plan_material(obj, alpha, solver, self.plan, solver_heads=self.solver_heads)
 
     def to_dict(self) -> dict:
         d = {"source": "model"}
@@ -242,6 +216,27 @@ def predict_material(obj: BakeObject, features, alpha: float, solver: str, check
     pred = predict(grid, [alpha], heads=MODEL_HEADS[solver], seed=seed, checkpoint=checkpoint, device=device)
     res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
     res.description = f"model at α {alpha:g} ({Path(str(checkpoint or 'default model')).name}, seed {seed})"
+    return res
+
+
+def no_prediction(object_name: str) -> UserError:
+    """The error for a model material bake of an object that has no prediction (no plan) yet."""
+    return UserError(f"object '{object_name}' has no predicted material yet: run Predict in the UniPixie panel "
+                     "(after Render views and Features), or bake with a homogeneous material or a field file")
+
+
+def plan_material(obj: BakeObject, alpha: float, solver: str, plan: Optional[ModelPlan],
+                  solver_heads: bool = False) -> ResolvedMaterial:
+    """The model's material for ``obj`` at ``alpha`` for ``solver`` from the object's own prediction ``plan``
+    (the sweep's values on its α nodes, else the cached or computed exact prediction:
+    :func:`~unipixie.core.model.plan.exact_prediction`).  No Blender access: it runs in the bake's worker thread.
+    ``plan`` ``None`` (no prediction yet) is a :class:`UserError` naming the remedy; ``solver_heads``: see
+    :func:`material_from_prediction`."""
+    if plan is None:
+        raise no_prediction(obj.name)
+    pred, how, _ = exact_prediction(plan, alpha, MODEL_HEADS[solver])
+    res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
+    res.description = f"model at α {float(alpha):g} ({how}, {Path(plan.checkpoint).name}, seed {plan.seed})"
     return res
 
 

@@ -1,10 +1,11 @@
 """Bake jobs on .blend files (the command line's ``unipixie bake`` and render farms): the object names of a .blend
 (:func:`blend_object_names`, for wildcards), a job's options and scenario over the object's panel settings
 (:func:`options_for_job`), and :func:`run_jobs`: open each scene, give the objects whose material is the model their
-prediction (:mod:`.pipeline`), bake them (:mod:`.bake`) and save."""
+prediction (:mod:`.pipeline`: their model material source carries its plan), bake them (:mod:`.bake`) and save."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Optional, Sequence
@@ -98,7 +99,8 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
     estimate passes the long-job limit (:mod:`unipixie.core.cost`).
 
     Jobs whose material is the model at α without a feature-grid file get the object's own prediction
-    (:func:`~unipixie.core.blender_io.pipeline.prepare_model_material`): ``auto`` runs whatever the object
+    (:func:`~unipixie.core.blender_io.pipeline.prepare_model_material`), carried by their material source as its
+    plan: ``auto`` runs whatever the object
     lacks first — render views, features, the prediction at the jobs' α values — with the panel's steps, cache
     and feature recipe, logging each step with its time; ``auto=False`` computes nothing and refuses an object
     without a current recorded prediction.
@@ -136,18 +138,20 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
                         options, scenario = options_for_job(j, obj, scene)
                         options.allow_long = bool(allow_long)
                         planned.append((obj, j, options, scenario))
-                fingerprints = _prepare_model_materials(planned, auto, log)
+                prepared = _prepare_model_materials(planned, auto, log)
                 for obj, j, options, scenario in planned:
+                    if obj.name in prepared and options.material.kind == "model" and not options.material.features:
+                        options.material = dataclasses.replace(options.material, plan=prepared[obj.name][1])
                     log(f"baking {j.describe()}")
                     sub = progress.sub(1.0, 1.0, obj.name)
                     rep = bake_object(obj, options, scenario, progress=sub, scene=scene)
                     for n in rep.notes:
                         log(f"  note: {n}")
                     log(f"  {rep.summary()}")
-                    if obj.name in fingerprints:
+                    if obj.name in prepared:
                         from .pipeline import note_bake
 
-                        note_bake(obj, options, fingerprints[obj.name])
+                        note_bake(obj, options, prepared[obj.name][0])
                     reports.append(rep)
                 save_blend(out)
                 log(f"saved {out}")
@@ -157,7 +161,7 @@ def run_jobs(jobs: Sequence[BakeJob], progress: Optional[Progress] = None, log=p
 def _prepare_model_materials(planned, auto: bool, log) -> dict:
     """For the planned ``(obj, job, options, scenario)`` whose material is the model without a feature-grid file:
     the object's prediction at the jobs' α values with the heads their solvers need (one pass per object).
-    Returns ``{object name: fingerprint}`` of the objects prepared."""
+    Returns ``{object name: (fingerprint, ModelPlan)}`` of the objects prepared."""
     from ..pipeline import PipelineSettings, cuda_available
     from . import pipeline as pio
 
@@ -176,12 +180,12 @@ def _prepare_model_materials(planned, auto: bool, log) -> dict:
                             "one output file; bake them into separate files")
         w["alphas"].add(float(options.alpha))
         w["heads"].update(core_bake.MODEL_HEADS[options.solver])
-    fingerprints = {}
+    prepared = {}
     for name, w in wanted.items():
         checkpoint, seed, device = w["key"]
         heads = tuple(h for h in SOLVER_NAMES if h in w["heads"])
         settings = PipelineSettings(checkpoint=checkpoint, seed=seed, device=device, heads=heads,
                                     alphas=tuple(sorted(w["alphas"]))).with_model_recipe()
         log(f"model material of '{name}' (α {', '.join(f'{a:g}' for a in sorted(w['alphas']))}):")
-        fingerprints[name] = pio.prepare_model_material(w["obj"], settings, log=log, compute=auto)
-    return fingerprints
+        prepared[name] = pio.prepare_model_material(w["obj"], settings, log=log, compute=auto)
+    return prepared

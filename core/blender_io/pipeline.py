@@ -32,7 +32,6 @@ _MUTING: set = set()
 """Names of objects whose bake is muted right now (the add-on's depsgraph handler ignores them)."""
 _RUNNING: dict = {}
 """Object name → the step running on it."""
-_PREDICTOR_REGISTERED = False
 
 
 # --------------------------------------------------------------------------- record
@@ -52,7 +51,6 @@ def clear_record(obj) -> None:
     """Forget what the pipeline did for ``obj`` (the cached files stay in the cache)."""
     if has_record(obj):
         del obj[core.RECORD_KEY]
-    core.set_plan(obj.name, None)
 
 
 # --------------------------------------------------------------------------- fingerprint
@@ -184,26 +182,9 @@ def _check_object(obj) -> None:
 
 
 # --------------------------------------------------------------------------- the model material
-def ensure_model_material() -> None:
-    """Register :func:`unipixie.core.pipeline.model_material` as the bakes' model material (once)."""
-    global _PREDICTOR_REGISTERED
-    from .. import bake as core_bake
-
-    if not _PREDICTOR_REGISTERED:
-        core_bake.register_material_predictor(core.model_material)
-        _PREDICTOR_REGISTERED = True
-
-
-def release_model_material() -> None:
-    global _PREDICTOR_REGISTERED
-    from .. import bake as core_bake
-
-    core_bake.unregister_material_predictor(core.model_material)
-    _PREDICTOR_REGISTERED = False
-
-
 def plan_of(obj, settings: core.PipelineSettings, record: Optional[core.PipelineRecord] = None):
-    """The object's :class:`~unipixie.core.pipeline.ModelPlan` from its record (``None`` before Predict)."""
+    """The object's :class:`~unipixie.core.pipeline.ModelPlan` from its record (``None`` before Predict, or when
+    its files left the cache): what a bake's model material source carries (:func:`model_source`)."""
     record = record or read_record(obj)
     pred, feat = record.get("predict"), record.get("features")
     if not pred or not feat or record.file("predict", "sweep") is None or record.file("features", "grid") is None:
@@ -213,9 +194,20 @@ def plan_of(obj, settings: core.PipelineSettings, record: Optional[core.Pipeline
                           seed=int(inputs.get("seed", 0)), steps=int(inputs.get("steps", 15)), device=settings.device)
 
 
-def sync_plan(obj, settings: core.PipelineSettings, record: Optional[core.PipelineRecord] = None) -> None:
-    """Tell the bakes' model material where ``obj``'s prediction is (or that it has none)."""
-    core.set_plan(obj.name, plan_of(obj, settings, record))
+def model_source(obj, settings: core.PipelineSettings, source):
+    """``source`` (a bake's material source) with ``obj``'s own prediction as its plan, when it is the model's
+    material without a feature-grid file; other sources as they are.  An object without a prediction is a
+    :class:`UserError` naming the remedy (before any simulation starts)."""
+    import dataclasses
+
+    from ..bake import no_prediction
+
+    if source.kind != "model" or source.features:
+        return source
+    plan = plan_of(obj, settings)
+    if plan is None:
+        raise no_prediction(obj.name)
+    return dataclasses.replace(source, plan=plan)
 
 
 # --------------------------------------------------------------------------- steps
@@ -302,11 +294,9 @@ def predict_step(obj, settings: core.PipelineSettings) -> Iterator[tuple[float, 
     ckpt = core.resolve_checkpoint(settings.checkpoint)
     with _running(obj, "predict"):
         sweep, path, inputs = yield from core.predict_job(grid, settings)
-        obj, record = _store(name, "predict", {"inputs": inputs, "sweep": str(path), "checkpoint": str(ckpt),
-                                               "heads": list(core.sweep_heads(sweep)),
-                                               "alphas": [float(a) for a in sweep.alphas],
-                                               "seconds": float(sweep.meta.get("seconds", 0.0))})
-        sync_plan(obj, settings, record)
+        _store(name, "predict", {"inputs": inputs, "sweep": str(path), "checkpoint": str(ckpt),
+                                 "heads": list(core.sweep_heads(sweep)), "alphas": [float(a) for a in sweep.alphas],
+                                 "seconds": float(sweep.meta.get("seconds", 0.0))})
     return sweep
 
 
@@ -330,18 +320,18 @@ def refine_step(obj, settings: core.PipelineSettings, alpha: float) -> Iterator[
 
 def bake_step(obj, settings: core.PipelineSettings, scene=None, **overrides) -> Iterator[tuple[float, str]]:
     """Simulate & bake with the object's bake settings (``overrides``: BakeOptions fields, e.g. ``solver``,
-    ``alpha``, ``solver_settings``); the model material source uses the object's prediction at α.
+    ``alpha``, ``solver_settings``); the model material source carries the object's prediction (its plan,
+    :func:`model_source`).  The panel's one bake (its step and *Simulate & bake*), the demo's and scripts'.
     Returns the :class:`~unipixie.core.blender_io.bake.BakeReport`."""
     from .bake import bake_steps
 
     _check_object(obj)
     scene = scene or bpy.context.scene
     name = obj.name
-    ensure_model_material()
-    sync_plan(obj, settings)
     with _running(obj, "bake"):
         fp = fingerprint(obj)
         options = bake_options(obj, scene, **overrides)
+        options.material = model_source(obj, settings, options.material)
         sweep = (read_record(obj).get("predict") or {}).get("sweep", "") if options.material.kind == "model" else ""
         report = yield from bake_steps(obj, options, scene=scene)
         _store(name, "bake", {"fingerprint": fp, "sweep": sweep, "solver": options.solver, "alpha": options.alpha})
@@ -376,15 +366,16 @@ def run_all(obj, settings: core.PipelineSettings, scene=None, **bake_overrides) 
     return ran
 
 
-def prepare_model_material(obj, settings: core.PipelineSettings, log=print, compute: bool = True) -> str:
+def prepare_model_material(obj, settings: core.PipelineSettings, log=print, compute: bool = True):
     """Make ``obj``'s model material available to bakes without the panel (``unipixie bake --alpha``).
 
     Runs whatever of Render views → Features → Predict the object lacks — the panel's own steps, with its cache and
     the feature recipe of ``settings`` (give ``settings.with_model_recipe()`` and, for a quick first bake,
     ``alphas`` = the bakes' α values) — logging each step with its time and whether it came from the cache; a
-    prediction already recorded on the object and current is used as it is.  Then registers the model material and
-    tells the bakes where the prediction is.  ``compute=False`` runs nothing: a missing or stale prediction is a
-    :class:`UserError` naming the remedy.  Returns the object's fingerprint (for :func:`note_bake`)."""
+    prediction already recorded on the object and current is used as it is.  ``compute=False`` runs nothing: a
+    missing or stale prediction is a :class:`UserError` naming the remedy.  Returns ``(fingerprint, plan)``: the
+    object's fingerprint (for :func:`note_bake`) and its :class:`~unipixie.core.pipeline.ModelPlan` (what the
+    bakes' model material source carries)."""
     import time
 
     _check_object(obj)
@@ -418,12 +409,10 @@ def prepare_model_material(obj, settings: core.PipelineSettings, log=print, comp
         finally:
             job.close()
         log(f"  {core.STEP_LABELS[step]}: {status} ({time.perf_counter() - t0:.1f} s)")
-    obj = _object(name)
-    ensure_model_material()
-    sync_plan(obj, settings)
-    if core.get_plan(name) is None:
+    plan = plan_of(_object(name), settings)
+    if plan is None:
         raise UserError(f"object '{name}': the prediction is not in the cache any more; run the bake again")
-    return fp
+    return fp, plan
 
 
 def note_bake(obj, options, fingerprint_value: str) -> None:

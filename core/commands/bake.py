@@ -30,9 +30,16 @@ def _vec3(text: str):
 
 
 def _alphas(text: str):
+    """``--alpha A[,B,...]``: numbers, each checked by the one α check (:func:`unipixie.core.types.check_alpha`)."""
+    from ..errors import UserError
+    from ..types import check_alpha
+
     out = []
     for part in text.split(","):
-        out.append(_common.unit_interval(part.strip()))
+        try:
+            out.append(check_alpha(_common._number(part.strip(), float, lambda x: True, "a number in [0, 1]")))
+        except UserError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
     return out
 
 

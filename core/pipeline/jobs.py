@@ -2,7 +2,8 @@
 
 Each runs in a worker thread (:class:`unipixie.core.bake.BackgroundRun`) as a job generator of
 ``(fraction, status)`` that returns its result; closing the generator (Esc) cancels it.  May use
-:mod:`.settings`, :mod:`.checkpoint`, :mod:`.prediction`, the model (imported when run) and the cache.
+:mod:`.settings`, :mod:`.checkpoint`, the model's plan (:mod:`unipixie.core.model.plan`; the model itself is
+imported when run) and the cache.
 """
 
 from __future__ import annotations
@@ -10,8 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Iterator
 
+from ..model.plan import ModelPlan, exact_prediction, load_sweep, sweep_heads
+from ..types import check_alpha
 from .checkpoint import resolve_checkpoint
-from .prediction import ModelPlan, exact_prediction, load_sweep, sweep_heads
 from .settings import PipelineSettings
 
 
@@ -71,7 +73,9 @@ def predict_job(grid_path, settings: PipelineSettings) -> Iterator[tuple[float, 
 
 def refine_job(plan: ModelPlan, alpha: float, heads=()) -> Iterator[tuple[float, str]]:
     """The panel's "Refine at this α": exact inference at ``alpha`` with the sweep's heads (plus ``heads``),
-    cached, as a job generator run in a worker thread; returns ``(Prediction, how, path)``."""
+    cached, as a job generator run in a worker thread; returns ``(Prediction, how, path)``.  ``alpha`` is checked
+    here (:func:`~unipixie.core.types.check_alpha`): the Refine's entry point."""
+    alpha = check_alpha(alpha)
     yield 0.0, "loading the model"
     heads = tuple(set(heads) | set(sweep_heads(load_sweep(plan.sweep))))
     result = yield from _background(lambda progress: exact_prediction(plan, alpha, heads, progress, from_sweep=False),

@@ -1,12 +1,13 @@
-"""The model's material at α: where an object's prediction comes from, and the call a bake makes.
+"""An object's model prediction at any α: the plan (where its sweep and feature grid are) and the exact prediction.
 
-:class:`ModelPlan` (set by the Blender side before a bake: the feature grid, the α sweep, the checkpoint) per
-object; :func:`load_sweep` keeps sweeps in memory; :func:`exact_prediction` gives the prediction at one α —
-the sweep's own values when α is one of its α values, else a cached or freshly computed exact prediction (the
-interpolated sweep is for the viewport only); :func:`model_material` is the "model" material source of
-:mod:`unipixie.core.bake` (registered with :func:`~unipixie.core.bake.register_material_predictor`; it runs in
-the bake's worker thread, without Blender).  May use the model (imported when called), the cache and the bake's
-material conversion.
+:class:`ModelPlan` is plain data — the object's feature grid, its α sweep, the checkpoint, the sweep's seed and
+steps, the torch device — built from the object's pipeline record by whoever starts a bake and carried by the
+bake's model material source (:class:`~unipixie.core.bake.ModelSource`, field ``plan``), so a bake's worker thread
+needs neither Blender nor any process-wide state.  :func:`load_sweep` keeps sweeps in memory;
+:func:`exact_prediction` gives the prediction at one α — the sweep's own values when α is one of its α values,
+else a cached or freshly computed exact prediction (the interpolated sweep is for the viewport only).
+α is trusted here (a float in [0, 1], checked at the entry points by :func:`unipixie.core.types.check_alpha`).
+May use the model's inference and sweep, the cache paths and the solvers' registry.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -22,9 +22,9 @@ from ...solvers.registry import SOLVER_NAMES
 from ..errors import UserError
 
 
-@dataclass
+@dataclass(frozen=True)
 class ModelPlan:
-    """Where an object's model material comes from (set by the Blender side before a bake; read in the
+    """Where an object's model material comes from (built from its pipeline record before a bake, read in the
     bake's worker thread, so it holds plain values only).
 
     grid / sweep: the feature grid and α-sweep files.  checkpoint: the checkpoint directory.
@@ -39,28 +39,13 @@ class ModelPlan:
     device: str = "cpu"
 
 
-_PLANS: dict = {}
 _SWEEPS: dict = {}
 _LOCK = threading.Lock()
 
 
-def set_plan(object_name: str, plan: Optional[ModelPlan]) -> None:
-    """Make ``plan`` the model material of the object named ``object_name`` (``None`` forgets it)."""
-    with _LOCK:
-        if plan is None:
-            _PLANS.pop(object_name, None)
-        else:
-            _PLANS[object_name] = plan
-
-
-def get_plan(object_name: str) -> Optional[ModelPlan]:
-    with _LOCK:
-        return _PLANS.get(object_name)
-
-
 def load_sweep(path):
     """An :class:`~unipixie.core.model.sweep.AlphaSweep` from disk, kept in memory (keyed by path and mtime)."""
-    from ..model.sweep import AlphaSweep
+    from .sweep import AlphaSweep
 
     p = Path(path)
     try:
@@ -94,7 +79,7 @@ def sweep_heads(sweep) -> tuple:
 def prediction_from_sweep(sweep, alpha: float):
     """A one-α :class:`~unipixie.core.model.inference.Prediction` read from a sweep (exact at its own α
     values, interpolated between them)."""
-    from ..model.inference import Prediction
+    from .inference import Prediction
 
     a = float(alpha)
     return Prediction(alphas=np.array([a]),
@@ -120,12 +105,10 @@ def exact_prediction(plan: ModelPlan, alpha: float, heads, progress=None, from_s
     prediction) or ``"exact inference"`` (computed now and cached); and the file it came from.
     ``from_sweep=False`` skips the sweep (the panel's "refine" always keeps a file at its α).
     """
-    from ..model.sweep import AlphaSweep
     from ..types import FeatureGrid
+    from .sweep import AlphaSweep
 
     alpha = float(alpha)
-    if not 0.0 <= alpha <= 1.0:
-        raise UserError(f"α must lie in [0, 1], got {alpha:g}")
     sweep = load_sweep(plan.sweep)
     heads = tuple(heads)
     have = sweep_heads(sweep)
@@ -140,7 +123,7 @@ def exact_prediction(plan: ModelPlan, alpha: float, heads, progress=None, from_s
             return prediction_from_sweep(AlphaSweep.load(path), alpha), "refined", path
         except UserError:
             path.unlink(missing_ok=True)
-    from ..model.inference import get_predictor
+    from .inference import get_predictor
 
     predictor = get_predictor(plan.checkpoint, device=plan.device)
     grid = FeatureGrid.load(plan.grid)
@@ -150,18 +133,3 @@ def exact_prediction(plan: ModelPlan, alpha: float, heads, progress=None, from_s
     one.save(path)  # atomic (core/atomic_io.py), with a unique temporary name
     return pred, "exact inference", path
 
-
-def model_material(obj, alpha: float, solver: str, solver_heads: bool = False):
-    """The model's material for ``obj`` (a :class:`~unipixie.core.bake.BakeObject`) at ``alpha`` for ``solver``
-    (registered as the bake's material predictor; no Blender access: runs in the bake's worker thread);
-    ``solver_heads``: see :func:`~unipixie.core.bake.material_from_prediction`."""
-    from ..bake import MODEL_HEADS, material_from_prediction
-
-    plan = get_plan(obj.name)
-    if plan is None:
-        raise UserError(f"object '{obj.name}' has no predicted material yet: run Predict in the UniPixie panel "
-                        "(after Render views and Features), or bake with a homogeneous material or a field file")
-    pred, how, _ = exact_prediction(plan, alpha, MODEL_HEADS[solver])
-    res = material_from_prediction(obj, pred, 0, solver, solver_heads=solver_heads)
-    res.description = f"model at α {float(alpha):g} ({how}, {Path(plan.checkpoint).name}, seed {plan.seed})"
-    return res
