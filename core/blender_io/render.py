@@ -46,6 +46,7 @@ from ..normalise import Normalisation
 from ..render_defaults import DEFAULT_RESOLUTION, DEFAULT_SAMPLES, DEFAULT_VIEW_COUNT
 from ..types import Views
 from . import render_passes
+from .compositor import file_output_node
 from .scene_import import geometry_objects, quiet_blender_output, remove_new_ids, snapshot_ids
 
 ENGINES = ("cycles", "workbench")
@@ -442,21 +443,11 @@ def _setup_compositor(scene, out_dir: Path):
     scene.compositing_node_group = tree
     layers = tree.nodes.new("CompositorNodeRLayers")
     layers.scene = scene
-    colour = tree.nodes.new("CompositorNodeOutputFile")
-    colour.directory = str(out_dir)
-    colour.format.media_type = "IMAGE"
-    colour.format.file_format = "PNG"
-    colour.format.color_mode = "RGBA"
-    colour.format.color_depth = "8"
+    colour = file_output_node(tree, out_dir, "PNG", "RGBA", "8")
     colour.save_as_render = True
     colour.file_output_items.new("RGBA", "rgba")
     tree.links.new(layers.outputs["Image"], colour.inputs["rgba"])
-    depth = tree.nodes.new("CompositorNodeOutputFile")
-    depth.directory = str(out_dir)
-    depth.format.media_type = "IMAGE"
-    depth.format.file_format = "OPEN_EXR"
-    depth.format.color_depth = "32"
-    depth.format.color_mode = "RGB"
+    depth = file_output_node(tree, out_dir, "OPEN_EXR", "RGB", "32")
     depth.file_output_items.new("FLOAT", "depth")
     tree.links.new(layers.outputs["Depth"], depth.inputs["depth"])
     return colour, depth

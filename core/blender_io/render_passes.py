@@ -29,6 +29,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from .compositor import file_output_node
+
 PASS_CHANNELS = {"base_color": 3, "roughness": 1, "metallic": 1, "normal": 3}
 """The passes written per view and their channel counts (what :attr:`Views.passes` holds)."""
 _AOVS = {"base_color": ("unipixie_base_color", "COLOR", "Base Color"),
@@ -129,12 +131,7 @@ def setup_pass_outputs(scene, tree, layers, out_dir: Path):
         aov = view_layer.aovs.add()
         aov.name = aov_name
         aov.type = kind
-    node = tree.nodes.new("CompositorNodeOutputFile")
-    node.directory = str(out_dir)
-    node.format.media_type = "IMAGE"
-    node.format.file_format = "OPEN_EXR"
-    node.format.color_depth = "32"
-    node.format.color_mode = "RGB"
+    node = file_output_node(tree, out_dir, "OPEN_EXR", "RGB", "32")
     for name in PASS_CHANNELS:
         source = "Normal" if name == "normal" else _AOVS[name][0]
         node.file_output_items.new("VECTOR" if name == "normal" else ("RGBA" if name == "base_color" else "FLOAT"),
