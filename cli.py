@@ -36,8 +36,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def entry_point() -> None:  # pragma: no cover - console script
+    _core_cli.guard_start_up()
     sys.exit(_core_cli.finish(main()))
 
 
 if __name__ == "__main__":  # pragma: no cover - `python -m unipixie.cli`
+    _core_cli.guard_start_up()
     raise SystemExit(_core_cli.finish(main()))

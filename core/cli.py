@@ -208,13 +208,36 @@ def _crash_log(command: str, exc: BaseException):
         return None
 
 
+def _cancel_at_once(signum, frame):
+    """SIGINT while a command is still starting (importing its modules): nothing has been written yet, so the
+    process ends at once with status 130 — no traceback, no half-imported library left to fail later."""
+    try:
+        os.write(2, b"unipixie: cancelled (while starting)\n")
+    finally:
+        os._exit(EXIT_CANCELLED)
+
+
+def guard_start_up() -> None:
+    """From here until a command's :func:`interrupt_guard` takes over, Ctrl-C ends the process at once (130).
+
+    Building the command line imports every command's modules (numpy, scipy, torch: seconds); a Ctrl-C in
+    that window used to print a KeyboardInterrupt traceback with status 1, or end the process by the signal
+    (status -2), or make numpy's import fail with a message about its source tree.  Only the console script
+    and ``python -m unipixie.cli`` call this (never an importer such as Blender or a test), in the main thread,
+    and only where Ctrl-C still has Python's default handler.
+    """
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _cancel_at_once)
+
+
 @contextlib.contextmanager
 def interrupt_guard(prefix: str = "unipixie"):
     """While the block runs, the first Ctrl-C raises ``KeyboardInterrupt`` (the command cancels and cleans
     up), a second one only says that it is cleaning up, a third exits at once (status 130).  Outputs are
     written atomically, so even the third leaves no partial file under a final name."""
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not \
-            signal.default_int_handler:
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) not in (signal.default_int_handler, _cancel_at_once):
         yield []
         return
     from .progress import INTERRUPTED
@@ -262,4 +285,5 @@ def entry_point() -> None:  # pragma: no cover - console script of installs made
     """Core's commands only: the ``unipixie`` script of an install older than the layered command line (which
     pointed here).  Re-installing (``setup.sh``: ``pip install -e .``) points the script at
     :func:`unipixie.cli.entry_point`, every layer's commands."""
+    guard_start_up()
     sys.exit(finish(main()))

@@ -213,3 +213,30 @@ def test_ctrl_c_inside_a_blender_callback_only_raises_the_flag():
     assert cli._in_blender_callback(frame)
     ours = types.SimpleNamespace(f_code=types.SimpleNamespace(co_filename=str(REPO_ROOT / "core" / "bake.py")))
     assert not cli._in_blender_callback(ours) and not cli._in_blender_callback(None)
+
+
+def test_ctrl_c_while_the_command_line_is_starting_cancels_without_a_traceback():
+    """Building the command line imports every command's modules (seconds): a Ctrl-C there printed a
+    KeyboardInterrupt traceback (status 1), killed the process by the signal (-2) or broke numpy's import."""
+    code = ("import os, signal, time; from unipixie import cli; cli._core_cli.guard_start_up(); "
+            "os.kill(os.getpid(), signal.SIGINT); time.sleep(10); print('not stopped')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert r.returncode == EXIT_CANCELLED and "cancelled" in r.stderr, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr and "not stopped" not in r.stdout
+
+
+def test_the_command_takes_ctrl_c_over_from_the_start_up_guard():
+    """Once the command runs, its own guard (cancel and clean up) replaces the start-up one, and after it
+    Python's default handler is back."""
+    from unipixie.core import cli as core_cli
+
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        core_cli.guard_start_up()
+        assert signal.getsignal(signal.SIGINT) is core_cli._cancel_at_once
+        with core_cli.interrupt_guard():
+            assert signal.getsignal(signal.SIGINT) not in (core_cli._cancel_at_once, signal.default_int_handler)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
