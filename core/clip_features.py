@@ -297,6 +297,12 @@ def random_clip_architecture(model: str = CLIP_MODEL, seed: int = 0, device: str
     return _from_model(f"{model}-random-weights", clip, device, {"model": model, "random_seed": int(seed)})
 
 
+def clip_identity(clip_weights: Optional[str | os.PathLike] = None, model: str = CLIP_MODEL) -> dict:
+    """What determines CLIP ``model``'s features: its architecture and the identity of the weights that
+    :func:`resolve_clip_weights` finds (for cache keys; nothing is loaded)."""
+    return {"model": model, "weights": weights_identity(resolve_clip_weights(clip_weights, model))}
+
+
 _LOADED: dict = {}
 """Extractors loaded in this process, by (identity, device): the add-on and repeated API calls reuse them."""
 
@@ -307,8 +313,7 @@ def make_extractor(offline: bool = False, clip_weights: Optional[str | os.PathLi
     Loaded once per process and kept (keyed by what determines its features and by device)."""
     import json
 
-    identity = offline_identity() if offline else {"model": model, "weights": weights_identity(
-        resolve_clip_weights(clip_weights, model))}
+    identity = offline_identity() if offline else clip_identity(clip_weights, model)
     key = (json.dumps(identity, sort_keys=True), _device(device))
     if key not in _LOADED:
         _LOADED.clear()                      # keep at most one model in memory

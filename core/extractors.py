@@ -92,8 +92,7 @@ def identity(name: str, clip_weights: Optional[str | os.PathLike] = None, clip_m
         return cf.offline_identity()
     if name in NEEDS_PASSES:
         return af.appearance_identity(with_vit=name == "appearance+vit")
-    model = clip_model or cf.CLIP_MODEL
-    return {"model": model, "weights": cf.weights_identity(cf.resolve_clip_weights(clip_weights, model=model))}
+    return cf.clip_identity(clip_weights, clip_model or cf.CLIP_MODEL)
 
 
 def make(name: str, clip_weights: Optional[str | os.PathLike] = None, device: str = "cpu",
