@@ -408,7 +408,7 @@ class MPMSimulation(Simulation):
             self._check_lost(buf, N, F_count - 1, dt)
         if M:
             out_positions[:, 1:] = history.numpy().reshape(F_count, E, M_alloc, 3)[1:, :, :M].transpose(1, 0, 2, 3)
-            if has_ground:  # a floor that gives lets the solid sink into it; what is recorded stays on the plane
+            if has_ground:  # the solid sinks a little into any floor (its spring); what is recorded stays on the plane
                 out_positions[...] = clamp_to_ground(out_positions, ground_z)
         if not np.all(np.isfinite(out_positions)):
             raise SimulationDiverged("MPM diverged: tracked points have NaN/inf positions; use a smaller time step "

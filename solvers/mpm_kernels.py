@@ -345,8 +345,13 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         inv_dx: float, has_ground: int, ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
     """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
 
-    Only a rigid floor puts particles and tracked points back on the plane (:func:`particle_advect`); on a floor
-    that gives, the host puts the tracked points' recorded positions back on it (:func:`.contact.clamp_to_ground`).
+    Only a rigid floor puts particles back on the plane (:func:`particle_advect`).  Tracked points are never put
+    back here, on any floor: they move with the material's velocity, and the host puts their *recorded* positions
+    back on the plane (:func:`.contact.clamp_to_ground`).  Putting them back here detached them from the material:
+    on the rigid floor a particle's lower face sinks about a millimetre into the floor's spring
+    (:data:`.contact.RIGID_CONTACT_BETA`), the lower-face tracked points were held up on the plane by that much
+    and kept the offset after the bounce, so they left the floor that much early (the drop's contact duration
+    was 25 ms where the solid touched for 33; docs/mpm.md, "Contact duration").
 
     Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
     velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
@@ -449,10 +454,7 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         vt = vbar
         if wp.isfinite(fit):
             vt = fit
-    xn = xp + dt * vt
-    if rigid_floor(has_ground, env_ground[env]) and xn[2] < ground_z:
-        xn = wp.vec3(xn[0], xn[1], ground_z)
-    tx[t] = xn
+    tx[t] = xp + dt * vt  # never put back on the plane here: a tracked point moves with the material
     tv[t] = vt
 
 
