@@ -232,7 +232,12 @@ def interrupt_guard(prefix: str = "unipixie"):
     def ask_again():
         if signal.getsignal(signal.SIGINT) is handler:  # the command may have ended meanwhile
             asked_again.append(True)
-            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # a signal also ends a sleep
+            if hasattr(signal, "pthread_kill"):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # a signal also ends a sleep
+            else:  # Windows
+                import _thread
+
+                _thread.interrupt_main()
 
     def handler(signum, frame):
         if asked_again:
