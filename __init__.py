@@ -7,8 +7,12 @@ never imports ``bpy``: only :func:`register` does, through
 to register the add-on's object properties (:mod:`.core.property_registration`).
 """
 
-from .core import __version__  # noqa: F401 - the version lives in core (below everything that prints it)
-from .core import property_registration as _property_registration
+from .core import start_up as _start_up
+
+_start_up.guard_if_command_line()  # first: Ctrl-C while the command line starts ends it at once (core/start_up.py)
+
+from .core import __version__  # noqa: E402,F401 - the version lives in core (below everything that prints it)
+from .core import property_registration as _property_registration  # noqa: E402
 
 
 def _register_object_properties():

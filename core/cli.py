@@ -35,6 +35,8 @@ from typing import Sequence
 
 from . import __version__
 from .errors import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_INTERNAL_ERROR, UserError
+from .start_up import cancel_at_once as _cancel_at_once
+from .start_up import guard_start_up  # noqa: F401 - the entry points call it (core.start_up: the whole story)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -208,34 +210,16 @@ def _crash_log(command: str, exc: BaseException):
         return None
 
 
-def _cancel_at_once(signum, frame):
-    """SIGINT while a command is still starting (importing its modules): nothing has been written yet, so the
-    process ends at once with status 130 — no traceback, no half-imported library left to fail later."""
-    try:
-        os.write(2, b"unipixie: cancelled (while starting)\n")
-    finally:
-        os._exit(EXIT_CANCELLED)
-
-
-def guard_start_up() -> None:
-    """From here until a command's :func:`interrupt_guard` takes over, Ctrl-C ends the process at once (130).
-
-    Building the command line imports every command's modules (numpy, scipy, torch: seconds); a Ctrl-C in
-    that window used to print a KeyboardInterrupt traceback with status 1, or end the process by the signal
-    (status -2), or make numpy's import fail with a message about its source tree.  Only the console script
-    and ``python -m unipixie.cli`` call this (never an importer such as Blender or a test), in the main thread,
-    and only where Ctrl-C still has Python's default handler.
-    """
-    if threading.current_thread() is threading.main_thread() and \
-            signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        signal.signal(signal.SIGINT, _cancel_at_once)
-
-
 @contextlib.contextmanager
 def interrupt_guard(prefix: str = "unipixie"):
     """While the block runs, the first Ctrl-C raises ``KeyboardInterrupt`` (the command cancels and cleans
     up), a second one only says that it is cleaning up, a third exits at once (status 130).  Outputs are
-    written atomically, so even the third leaves no partial file under a final name."""
+    written atomically, so even the third leaves no partial file under a final name.
+
+    A first Ctrl-C that lands while a module is being imported (commands import torch, Warp, scipy lazily, seconds)
+    is raised when that import has ended (:data:`IMPORT_RETRY_S`): a ``KeyboardInterrupt`` inside an import leaves
+    a half-imported library, which failed later (numpy, scipy) or aborted the process (a C++ extension such as
+    torch's: status −6)."""
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) not in (signal.default_int_handler, _cancel_at_once):
         yield []
@@ -243,13 +227,32 @@ def interrupt_guard(prefix: str = "unipixie"):
     from .progress import INTERRUPTED
 
     presses: list = []
+    asked_again: list = []      # the held-back press, signalled again (not a new press)
+
+    def ask_again():
+        if signal.getsignal(signal.SIGINT) is handler:  # the command may have ended meanwhile
+            asked_again.append(True)
+            if hasattr(signal, "pthread_kill"):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # a signal also ends a sleep
+            else:  # Windows
+                import _thread
+
+                _thread.interrupt_main()
 
     def handler(signum, frame):
-        presses.append(time.monotonic())
+        if asked_again:
+            asked_again.clear()
+        else:
+            presses.append(time.monotonic())
         INTERRUPTED.set()  # every progress check now cancels, even if this KeyboardInterrupt is swallowed
         if len(presses) == 1:
             if _in_blender_callback(frame):
                 return  # Blender would print the exception's traceback and swallow it: the flag cancels instead
+            if _importing(frame):
+                retry = threading.Timer(IMPORT_RETRY_S, ask_again)
+                retry.daemon = True
+                retry.start()
+                return
             raise KeyboardInterrupt
         if len(presses) == 2:
             print(f"\n{prefix}: cancelling: cleaning up so that nothing is left half-written "
@@ -263,6 +266,19 @@ def interrupt_guard(prefix: str = "unipixie"):
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         INTERRUPTED.clear()
+
+
+IMPORT_RETRY_S = 0.05
+"""Seconds between the checks whether the import a first Ctrl-C landed in has ended (see :func:`interrupt_guard`)."""
+
+
+def _importing(frame) -> bool:
+    """True when the interrupted Python code runs inside an import (Python's import machinery is on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib._bootstrap"):
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _in_blender_callback(frame) -> bool:

@@ -22,8 +22,7 @@ Exit statuses of every ``unipixie`` command (one table, README.md "Exit statuses
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
+# imports nothing at the top: the command line's start-up guard (core/start_up.py) needs EXIT_CANCELLED first
 
 
 EXIT_OK = 0
@@ -61,6 +60,9 @@ class SimulationDiverged(UserError):
 def read_json(path):
     """The parsed contents of the JSON file ``path``; a file that is not valid JSON is a :class:`UserError`
     that names it (whether the file exists is the caller's check, with its own remedy)."""
+    import json
+    from pathlib import Path
+
     try:
         return json.loads(Path(path).read_bytes().decode("utf-8"))
     except json.JSONDecodeError as exc:
