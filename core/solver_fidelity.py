@@ -45,7 +45,6 @@ CANTILEVERS = ("cantilever_y", "cantilever_z")
 MEASURED_FLOORS: dict = {
     "mpm": (
         MeasuredDeparture("tip_sag", CANTILEVERS, 0.058),
-        MeasuredDeparture("contact_duration", ("drop",), -0.242),
     ),
     "spring_mass": (
         MeasuredDeparture("tip_sag", CANTILEVERS, -0.070),
