@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 
 NAME = "bench"
-HELP = "run a benchmark (mpm, lbs, spring, features, model, diagnose, bake) and record benchmarks/<name>.json"
+HELP = "run a benchmark (mpm, lbs, spring, features, model, diagnose, bake, fidelity, objects) and record benchmarks/<name>.json"
 EXAMPLES = """  unipixie bench mpm --device cpu
   unipixie bench mpm --device cuda --no-record
   unipixie bench model --device cuda"""
