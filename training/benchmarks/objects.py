@@ -42,7 +42,7 @@ def add_arguments(p):
                    help="skip the spring-mass run at its bake-default anchor count")
 
 
-def test_indices(count: int, seed: int = 0) -> list:
+def test_indices(count: int) -> list:
     """The first ``count`` object indices of the procedural test split (:func:`~unipixie.training.dataset.split_of`)."""
     from ..dataset import split_of
 
@@ -73,7 +73,7 @@ def measure_object(index: int, seed: int, cells: tuple, alpha: float, settings: 
     from .. import ground_truth as G
 
     obj = procedural.generate(int(index), int(seed))
-    base = G.GroundTruthSettings(**settings)
+    base = G.GroundTruthSettings(**settings, cells_across=int(cells[0]))   # the ground truth's level
     solid = G.build_solid(obj, base)
     size = float(solid.size)
     motions, seconds, errors = {}, {}, {}
@@ -81,7 +81,7 @@ def measure_object(index: int, seed: int, cells: tuple, alpha: float, settings: 
            "pairs": {}, "seconds": seconds, "errors": errors}
     for c in cells:
         s = dataclasses.replace(base, cells_across=int(c))
-        level = G.build_solid(obj, s)
+        level = solid if c == cells[0] else G.build_solid(obj, s)
         if level.tracked.shape != solid.tracked.shape or not np.allclose(level.tracked, solid.tracked):
             errors[f"mpm{c}"] = "the tracked points differ between levels"
             continue
@@ -148,6 +148,7 @@ def _parse_overrides(items) -> dict:
 
 def run(args) -> list:
     from ...core.errors import UserError
+    from ...core.progress import Progress
     from ...solvers.warp_runtime import device_description, resolve_device
 
     try:
@@ -163,22 +164,27 @@ def run(args) -> list:
     device = resolve_device(args.device)
     settings = dict(_parse_overrides(args.overrides), device=device)
     described = device_description(device)
-    indices = test_indices(int(args.objects), int(args.seed))
-    jobs = [(i, int(args.seed), cells, float(args.alpha), settings, not args.no_bake_default) for i in indices]
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm is a dependency
-        tqdm = None
+    jobs = [(i, int(args.seed), cells, float(args.alpha), settings, not args.no_bake_default)
+            for i in test_indices(int(args.objects))]
     rows = []
-    if int(args.workers) == 1:
-        iterator = (measure_object(*job) for job in jobs)
-        rows = list(tqdm(iterator, total=len(jobs), desc="objects") if tqdm else iterator)
-    else:
-        import multiprocessing
+    with Progress(total=len(jobs), description="objects") as progress:
+        if int(args.workers) == 1:
+            for job in jobs:
+                rows.append(measure_object(*job))
+                progress.step(1.0, rows[-1]["object"])
+        else:
+            import multiprocessing
 
-        with ProcessPoolExecutor(max_workers=int(args.workers), mp_context=multiprocessing.get_context("spawn")) as ex:
-            futures = [ex.submit(measure_object, *job) for job in jobs]
-            rows = [f.result() for f in (tqdm(futures, desc="objects") if tqdm else futures)]
+            with ProcessPoolExecutor(max_workers=int(args.workers),
+                                     mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures = [pool.submit(measure_object, *job) for job in jobs]
+                try:
+                    for future in futures:
+                        rows.append(future.result())
+                        progress.step(1.0, rows[-1]["object"])
+                except BaseException:  # cancelled (Ctrl-C) or failed: the objects not started never start
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
     return entries(rows, described, cells)
 
 
