@@ -47,6 +47,21 @@ layer of the solid 35–52 mm thick under a 0.2 m cube and gave back the energy 
 particles lie 3 mm apart and its floor is stiff at 0.55; at β = 2 its rebound fell from 0.1669 to 0.1555 m
 (16 cells across, below the independent referee's 0.1598 m) and the tracked points chattered on the floor."""
 
+RIGID_SAMPLE_DAMPING_RATIO = {"mpm": 0.0, "spring_mass": 1.0, "lbs": 0.0}
+"""ζ of each contact sample's own spring on the rigid floor (the damper 2 ζ √(k m) on the sample's normal speed, at
+most m/Δt: :func:`.contact_kernels.ground_contact_impulse`), per solver using that function (LBS has its own law).
+
+Spring-mass: 1 (critically damped, as the independent referee's penalty contact).  Undamped, each of the lowest
+anchors — a sixth of the mass at 192 anchors — bounced off the floor on its own spring while the solid above was
+still coming down (4 ms after touchdown of the friction_drop scene their mean vertical speed was +0.77 m/s against
+the centre's still −0.8 m/s; 11 sign changes of their vertical speed in the 60 ms impact, 2.5 with ζ = 1), so they were
+off the floor, where friction cannot act, for much of the impact: the friction impulse of a sliding cube landing
+flat (μ 0.4, 1 m/s, 0.05 m) was 13–16 % below the referee's, and the diagnosis fitted μ 0.62–2 for the truth 0.4
+(issue 18, docs/diagnosis.md).  Damped, the canonical drop's rebound converges to the referee's (0.1607 / 0.1627 m at 512 / 2048 anchors
+against 0.1598 m; undamped 0.1709 m at both); at 192 anchors the bottom layer's normal energy is lost at the
+impact (0.1480 m).  MPM: 0 — its particles are a few mm apart and its friction acts on the grid nodes,
+where the impulse of a stick-slip impact already matched the referee's (0.78 of the 1 m/s, 12 and 16 cells)."""
+
 RIGID_GROUND_STIFFNESS = 1.0e30
 """Pa/m: a ground stiffness k_g at or above this is the rigid floor (the solvers' kernels carry k_g = ∞ as this)."""
 

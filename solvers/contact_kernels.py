@@ -33,7 +33,8 @@ def rigid_contact_stiffness(beta2: float, p_wave_modulus: float, area: float, si
 
 @wp.func
 def ground_contact_impulse(z_low: float, v: wp.vec3, m: float, area: float, size: float, rigid_k: float,
-                           rigid_c: float, dt: float, ground: float, stiffness: float, damping: float, mu: float):
+                           rigid_c: float, sample_zeta: float, dt: float, ground: float, stiffness: float,
+                           damping: float, mu: float):
     """Impulse (N·s, world frame) of the ground on one contact sample over a step of dt seconds.
 
     z_low: height (m) of the sample's lowest point at the start of the step; v: its velocity (m/s);
@@ -60,7 +61,10 @@ def ground_contact_impulse(z_low: float, v: wp.vec3, m: float, area: float, size
     k = wp.min(wp.min(stiffness * area, rigid_k), m * rate * rate)
     c = float(0.0)
     if d <= size:
-        c = wp.min(damping * area + rigid_c * k / rigid_k, m / dt)
+        c = damping * area + rigid_c * k / rigid_k
+        if stiffness >= RIGID_K:
+            c = c + 2.0 * sample_zeta * wp.sqrt(k * m)
+        c = wp.min(c, m / dt)
     fn = k * wp.min(d, size) - c * v[2]
     if fn <= 0.0:
         return wp.vec3(0.0)

@@ -42,12 +42,13 @@ The solid is a network of *anchors* (point masses) joined by springs:
   roughly η > ℓ sqrt(ρE)) makes the substep shorter in proportion — the cost of the exact
   Kelvin–Voigt rate; implicit one-sweep (Jacobi) alternatives were tried and dropped: they
   saturate and no longer damp in proportion to η (measured on the cantilever test).
-* **Contact.**  The ground plane z = h is a hard, inelastic, frictionless (base model)
-  constraint on anchors, applied at z = h + ``contact_offset`` (half the fill spacing: an anchor
-  stands for a cell of material, the lowest anchors lie that far inside the surface): an anchor that would cross it lands on it and loses its normal
-  velocity; ``ground_friction`` removes up to μ × that normal impulse from the tangential
-  velocity (Coulomb, with sticking).  Anchors inside the scenario's ``pinned_box`` (the
-  clamp) or of a ``held_fixed`` class (stationary) never move.
+* **Contact.**  The ground plane z = h pushes each anchor's cell where its lowest point is below
+  the plane (:func:`.contact_kernels.ground_contact_impulse`, the law of :mod:`.contact`): on the
+  base model's rigid, frictionless floor a stiff spring per anchor, critically damped
+  (:data:`.contact.RIGID_SAMPLE_DAMPING_RATIO`: an anchor that hits the floor stays on it instead
+  of bouncing off on its own); ``ground_friction`` removes up to μ × the normal impulse from the
+  anchor's tangential velocity (Coulomb, with sticking).  Anchors inside the scenario's
+  ``pinned_box`` (the clamp) or of a ``held_fixed`` class (stationary) never move.
 * **Output.**  Tracked points (mesh vertices, measurement points) are bound to their
   ``binding`` nearest anchors with inverse-distance-squared weights and follow the anchors
   *and* their rotations: x_p = Σ_b w_pb (x_b + R_b (X_p − X_b)), R_b the rotation of anchor

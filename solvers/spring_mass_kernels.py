@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .contact import RIGID_SAMPLE_DAMPING_RATIO
 from .contact_kernels import ground_contact_impulse
 
 # forward kernels only: nothing differentiates through them (no wp.Tape); the adjoints cost most of the
@@ -21,6 +22,8 @@ wp.set_module_options({"enable_backward": False})
 
 BIG = 1.0e30
 """Yield strain meaning "never yields"."""
+SAMPLE_ZETA = wp.constant(RIGID_SAMPLE_DAMPING_RATIO["spring_mass"])
+"""Damping ratio of an anchor's own contact spring on the rigid floor (:data:`.contact.RIGID_SAMPLE_DAMPING_RATIO`)."""
 
 
 @wp.func
@@ -93,7 +96,8 @@ def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: f
         g = ground_law[e]
         size = wp.sqrt(contact_area[i])  # an anchor's cell is a cube of its volume: area ℓ², thickness ℓ
         vn = vn + im * ground_contact_impulse(xi[2] - contact_low[e, i], vn, 1.0 / im, contact_area[i], size,
-                                              rigid_k[e, i], rigid_c[e, i], dt, ground, g[0], g[1], g[2])
+                                              rigid_k[e, i], rigid_c[e, i], SAMPLE_ZETA, dt, ground, g[0], g[1],
+                                              g[2])
     x_out[e, i] = xi + dt * vn
     v_out[e, i] = vn
 
