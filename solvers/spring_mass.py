@@ -30,13 +30,25 @@ The solid is a network of *anchors* (point masses) joined by springs:
 * **Forces.**  Springs are linear in their length change; a dashpot along each spring damps
   the relative velocity along it (only with ``material_damping``).  Gravity and the
   ``wind`` acceleration act on every anchor; drags act on the absolute velocity.
+* **Volumetric term** (``volumetric``, on by default).  Each anchor's spring star has the least-squares
+  deformation gradient F_i = (Σ_h d_h d0_hᵀ) G_i⁻¹ (G_i = Σ_h d0_h d0_hᵀ, scaled so det F_i = 1 at rest; the
+  same star fit as the tracked points' rotations) and stores W_i = ½ V_i λ_extra,i (J_i − 1)², J_i = det F_i.
+  With A_i = V_i λ_extra,i (J_i − 1) cof(F_i) G_i⁻¹ (a first pass per substep) the force on anchor i is
+  Σ_h (A_i + A_j)(X_j − X_i) over its half-edges (the second, gathering pass: its own star's gradient and that
+  of every star it belongs to — the half-edges are symmetric).  The forces of one star sum to zero and exert no
+  torque (momentum and angular momentum are conserved); J is rotation invariant, so rigid rotations store no
+  energy.  The form (J − 1)² rather than (ln J)²: the same at small strain, but finite for a star squashed
+  flat or inverted in a hard impact (ln J has no value at J ≤ 0), which an explicit step must survive.
+  Plasticity moves only the springs' rest lengths: the term keeps each star's rest volume (von Mises flow is
+  isochoric).
 * **Integration.**  Leapfrog: semi-implicit (symplectic) Euler with the velocities kept half a
   substep behind the positions (a half kick v −= Δt/2 a before the first substep, and
   v += (Δt − Δt')/2 a where the substep changes to Δt'), so positions are second-order accurate — a
   free fall is exact instead of drifting by g·t·Δt/2 (the velocities of ``particle_states`` are
   these half-step velocities); the substep is a fraction ``safety`` of
   the stability limit of the stiffest / most damped anchor (Gershgorin bound on M⁻¹K and
-  M⁻¹C): ``ω² = max_i 2 Σ_s κ_s / m_i``, ``γ = max_i 2 Σ_s c_s / m_i``,
+  M⁻¹C): ``ω² = max_i (2 Σ_s κ_s + r_i) / m_i``, ``γ = max_i 2 Σ_s c_s / m_i``, r_i the volumetric term's
+  per-anchor bound (:meth:`SpringMassSimulation.volume_rows`),
   ``dt ≤ safety · 4 / (γ + sqrt(γ² + 4 ω²))``.  Drags are applied implicitly.  Dashpots are
   explicit, so a strong ``material_damping`` (viscous time ρℓ²/η below the elastic substep,
   roughly η > ℓ sqrt(ρE)) makes the substep shorter in proportion — the cost of the exact
@@ -70,22 +82,26 @@ one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:
 (:data:`.spring_mass_settings.STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
-``docs/spring_mass.md``.  The network's Poisson ratio is 1/4 whatever ν says (ν is not
-used).  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly).
+``docs/spring_mass.md``.  Springs alone give ν = 1/4; for the material's ν (cell mean ν_i) the springs are scaled
+by 1.25 / (1 + ν_i) (the material's shear modulus μ) and the volumetric term adds λ_extra = λ − μ
+(:func:`.spring_mass_network.poisson_split`; ν below 1/4 runs as ν = 1/4, above
+:data:`.spring_mass_network.MAX_NETWORK_POISSON_RATIO` = 0.45 as 0.45).  With the model's explicit k the same
+holds with E_i = the modulus k stands for (:func:`.spring_mass_network.youngs_modulus_from_stiffness`) and ν_i
+from the material field.  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly).
 
 **Effects.**
 ``linear_drag`` / ``quadratic_drag`` / ``wind``: forces on every anchor as the registry says.
 ``material_damping`` (η_v Pa·s): dashpots on all springs, ``c_s = ½ (d_i + d_j) / L_s`` with
 ``d_i = c_E · 30 η_v V_i / Σ_{s∋i} L_s`` — the same affine argument with the network's
-viscous "shear modulus" S_c / 15 set to η_v (its volumetric part equals the shear part, as
-for the elastic network); dashpots leave rigid motion alone.
+viscous "shear modulus" S_c / 15 set to η_v (its volumetric part equals the shear part; the
+volumetric term has no dashpot); dashpots leave rigid motion alone.
 ``plasticity`` (σ_y Pa): a spring whose strain exceeds ε_y = σ_y / Ē_s (Ē_s the mean of its
 ends' E: the uniaxial yield strain) has its rest length moved so its strain stays at ±ε_y —
 permanent deformation.  Classes with von Mises plasticity (metal, plasticine) use their
 class yield stress the same way.
 ``ground_friction`` (μ): Coulomb friction at the ground (above).
-``stiffness_region`` (factor): multiplies k_i (and E_i for the yield strain) of the anchors
-in the region.
+``stiffness_region`` (factor): multiplies k_i (and E_i for the yield strain and λ_extra,i) of the
+anchors in the region.
 """
 
 from __future__ import annotations
@@ -412,9 +428,9 @@ class SpringMassSimulation(Simulation):
 
         def launch_stress(a, record_cmd=False):
             """Launch (or record) the volumetric term's first pass on buffer a's positions."""
-            return wp.launch(K.star_stress, dim=(n_env, n), device=dev, record_cmd=record_cmd,
-                             inputs=[bufs[a][0], self._d_rest_pos, self._d_start, self._d_nbr, self._d_gram_inv,
-                                     d_vol, d_stress])
+            return wp.launch_tiled(K.star_stress, dim=(n_env, n), device=dev, block_dim=lanes, record_cmd=record_cmd,
+                                   inputs=[bufs[a][0], self._d_rest_pos, self._d_start, self._d_nbr, self._d_gram_inv,
+                                           d_vol, d_stress])
 
         def launch_substep(a, b, dt, record_cmd=False):
             """Launch (or record) one substep from buffer a to buffer b (the stress pass first, when it is on)."""

@@ -66,13 +66,16 @@ def spring_force_sum(e: int, i: int, first: int, stride: int, xi: wp.vec3, vi: w
     h = start[i] + first
     stop = start[i + 1]
     if has_volume != 0:
-        Ai = stress[e, i]
         Xi = x_rest[i]
+        d0_sum = wp.vec3(0.0, 0.0, 0.0)
         while h < stop:
             f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
             j = nbr[h]
-            f = f + (Ai + stress[e, j]) * (x_rest[j] - Xi)
+            d0 = x_rest[j] - Xi
+            f = f + stress[e, j] * d0
+            d0_sum = d0_sum + d0
             h += stride
+        f = f + stress[e, i] * d0_sum
     else:
         while h < stop:
             f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
@@ -98,21 +101,36 @@ def star_deformation(e: int, i: int, x: wp.array2d(dtype=wp.vec3), x_rest: wp.ar
 def star_stress(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3), start: wp.array(dtype=int),
                 nbr: wp.array(dtype=int), gram_inv: wp.array(dtype=wp.mat33), vol_stiffness: wp.array2d(dtype=float),
                 stress: wp.array2d(dtype=wp.mat33)):
-    """First pass of the volumetric term: per anchor star, energy W_i = ½ s_i (J_i − 1)², J_i = det F_i
-    (:func:`star_deformation`), s_i = vol_stiffness[e, i] = V_i λ_extra,i (J); writes A_i = s_i (J_i − 1) cof(F_i)
-    G_i⁻¹ (N/m), so ∂W_i/∂x_j = A_i (X_j − X_i) for a neighbour j and −Σ_h A_i (X_j − X_i) for the anchor itself.
-    cof(F) = ∂J/∂F (columns c1×c2, c2×c0, c0×c1 of F's columns c): J is rotation invariant, so the forces store
-    no energy under rigid rotation, and they sum to zero over the star (momentum)."""
-    e, i = wp.tid()
+    """First pass of the volumetric term, by a block of lanes per anchor as :func:`spring_substep` (lane ``l`` sums
+    the half-edges start[i] + l, + block_dim, ...; a tile reduction joins them).  Per anchor star, energy
+    W_i = ½ s_i (J_i − 1)², J_i = det F_i (F_i as :func:`star_deformation`), s_i = vol_stiffness[e, i] = V_i λ_extra,i
+    (J); writes A_i = s_i (J_i − 1) cof(F_i) G_i⁻¹ (N/m), so ∂W_i/∂x_j = A_i (X_j − X_i) for a neighbour j and
+    −Σ_h A_i (X_j − X_i) for the anchor itself.  cof(F) = ∂J/∂F (columns c1×c2, c2×c0, c0×c1 of F's columns c): J is
+    rotation invariant, so the forces store no energy under rigid rotation, and they sum to zero over the star
+    (momentum)."""
+    e, i, lane = wp.tid()
     s = vol_stiffness[e, i]
-    if s == 0.0:
-        stress[e, i] = wp.mat33(0.0)
+    if s == 0.0:  # the same for every lane of the block
+        if lane == 0:
+            stress[e, i] = wp.mat33(0.0)
         return
-    F = star_deformation(e, i, x, x_rest, start, nbr, gram_inv)
-    Ft = wp.transpose(F)
-    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
-    J = wp.dot(Ft[0], wp.cross(Ft[1], Ft[2]))
-    stress[e, i] = (s * (J - 1.0)) * (cof * gram_inv[i])
+    xi = x[e, i]
+    x0 = x_rest[i]
+    B = wp.mat33(0.0)
+    h = start[i] + lane
+    stop = start[i + 1]
+    while h < stop:
+        j = nbr[h]
+        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
+        h += wp.block_dim()
+    total = wp.tile_sum(wp.tile(B, preserve_type=True))
+    if lane == 0:
+        G = gram_inv[i]
+        F = total[0] * G
+        Ft = wp.transpose(F)
+        cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+        J = wp.dot(Ft[0], wp.cross(Ft[1], Ft[2]))
+        stress[e, i] = (s * (J - 1.0)) * (cof * G)
 
 
 @wp.func

@@ -44,8 +44,8 @@ def kernel_forces(sim, positions: np.ndarray) -> np.ndarray:
     arr = lambda a, dtype=float: wp.array(np.asarray(a), dtype=dtype, device="cpu")  # noqa: E731
     x = arr(np.asarray(positions, np.float64)[None].astype(np.float32), wp.vec3)
     stress = wp.zeros((1, n), dtype=wp.mat33, device="cpu")
-    wp.launch(K.star_stress, dim=(1, n), device="cpu",
-              inputs=[x, sim._d_rest_pos, sim._d_start, sim._d_nbr, sim._d_gram_inv, arr(vol[None]), stress])
+    wp.launch_tiled(K.star_stress, dim=(1, n), device="cpu", block_dim=1,
+                    inputs=[x, sim._d_rest_pos, sim._d_start, sim._d_nbr, sim._d_gram_inv, arr(vol[None]), stress])
     v_out = wp.zeros((1, n), dtype=wp.vec3, device="cpu")
     wp.launch(K.velocity_kick, dim=(1, n), device="cpu",
               inputs=[x, wp.zeros((1, n), dtype=wp.vec3, device="cpu"), v_out,
