@@ -122,8 +122,8 @@ from .effects import PhysicsTerms
 from .material_sampling import MaterialSpec
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA, RIGID_GROUND_STIFFNESS
-from .spring_mass_network import (NETWORK_POISSON_RATIO, build_network, p_wave_per_e,
-                                  poisson_split, softness_weights, stiffness_from_youngs_modulus,
+from .spring_mass_network import (MAX_NETWORK_POISSON_RATIO, MIN_STAR_ISOTROPY, NETWORK_POISSON_RATIO, build_network,
+                                  p_wave_per_e, poisson_split, softness_weights, stiffness_from_youngs_modulus,
                                   youngs_modulus_from_stiffness)
 from .spring_mass_settings import DEFAULT_ANCHORS, DEFAULT_SOFTNESS, SpringMassSettings  # noqa: F401 - DEFAULT_SOFTNESS: public
 
@@ -142,8 +142,9 @@ class SpringMassSimulation(Simulation):
     Public attributes (numpy, SI): ``network`` (:class:`.spring_mass_network.AnchorNetwork`), ``stiffness`` (N,) N,
     ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
     ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping``, ``youngs_modulus`` (N,) Pa the
-    stiffness stands for, ``inv_mass`` (N,) (0 = clamped), ``contact_offset`` m (anchors touch the
-    ground this far above it).
+    stiffness stands for, ``poisson_ratio`` (N,) the ν each anchor realises, ``spring_factor`` (N,) and
+    ``volume_unit`` (N,) m³ (λ_extra V / E) of the volumetric term, ``inv_mass`` (N,) (0 = clamped),
+    ``contact_offset`` m (anchors touch the ground this far above it).
     """
 
     solver = "spring_mass"
@@ -175,10 +176,17 @@ class SpringMassSimulation(Simulation):
             self.stiffness = stiffness_from_youngs_modulus(net, net.E, settings)
             self.youngs_modulus = net.E.copy()
         # Poisson's ratio: springs scaled to the material's shear modulus, the volumetric term adds λ − μ
+        # (not for anchors whose star is too flat to measure its volume change)
+        self.poisson_ratio = np.full(n, NETWORK_POISSON_RATIO)
         if settings.volumetric:
-            self.spring_factor, lam_per_E = poisson_split(net.nu)
-        else:
-            self.spring_factor, lam_per_E = np.ones(n), np.zeros(n)
+            self.poisson_ratio = np.clip(net.nu, NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
+            flat = (net.star_isotropy() < MIN_STAR_ISOTROPY) & (self.poisson_ratio > NETWORK_POISSON_RATIO)
+            if np.any(flat):
+                self.poisson_ratio[flat] = NETWORK_POISSON_RATIO
+                self.warnings.append(f"{int(flat.sum())} of {n} anchors have spring stars too flat to measure a volume "
+                                     "change (a part one or two anchors thick): they run with springs only (Poisson "
+                                     "ratio 1/4 there); more anchors resolve the part")
+        self.spring_factor, lam_per_E = poisson_split(self.poisson_ratio)
         self.volume_unit = lam_per_E * net.volume
         sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
@@ -404,7 +412,7 @@ class SpringMassSimulation(Simulation):
         ground_law = np.array([(min(t.ground_stiffness, RIGID_GROUND_STIFFNESS), t.ground_damping, t.friction_mu) for t in terms_list])
         d_ground_law = wp.array(ground_law.astype(np.float32), dtype=wp.vec3, device=dev)
         # each anchor's rigid-floor spring k_r = β² M A / ℓ (solvers/contact.py), M of the network's material
-        M = p_wave_per_e(net.nu if self.settings.volumetric else np.full(n, NETWORK_POISSON_RATIO))[None] * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
+        M = p_wave_per_e(self.poisson_ratio)[None] * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
         rigid_k = RIGID_CONTACT_BETA["spring_mass"] ** 2 * M * (self.contact_area / self.contact_size)[None]
         eta = np.array([t.damping_eta for t in terms_list])[:, None]
         d_rigid_k = wp.array(rigid_k.astype(np.float32), dtype=wp.float32, device=dev)

@@ -31,6 +31,16 @@ MAX_ANCHOR_REFINEMENT = 4.0
 """Thin parts get anchors at most this many times closer together than the uniform spacing."""
 NETWORK_POISSON_RATIO = 0.25
 """Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ): the springs alone."""
+MIN_STAR_ISOTROPY = 0.1
+"""An anchor whose spring star is flatter than this (:meth:`AnchorNetwork.star_isotropy`: its thinnest direction
+carries under a tenth of its Gram matrix's largest eigenvalue, an rms thickness under ~1/3 of its length: a star in
+a part fewer than about :data:`ANCHORS_ACROSS_THIN` anchors thick) gets no volumetric term and unscaled springs
+(ν = 1/4 there): its least-squares F hardly measures the thickness change and G⁻¹ amplifies it ~1/isotropy times.
+Measured: the canonical cube's stars (512 / 2048 anchors) lie at 0.20 / 0.23 and above, the cantilever bar's at
+0.08 / 0.20 (512: under 1 % of them below 0.1); a 64-anchor 0.4 × 0.08 × 0.08 m bar's at 0.036-0.07 (46 of 64
+below 0.1), a 96-anchor 0.05 m plate's all below 0.02.  With 0.05, 52 of that 64-anchor bar's anchors kept the term
+and made its E/ρ refit less significant in the diagnosis (tests/test_diagnosis.py, stiffness-region case: share of
+the deformation excess 0.64, springs only 0.85, with 0.1 0.81)."""
 MAX_NETWORK_POISSON_RATIO = 0.45
 """Largest ν the network realises (volumetric term, :func:`poisson_split`): the term's stiffness λ − μ grows as
 1/(1 − 2ν) and shortens the explicit substep with it (at ν 0.45 the P-wave modulus is 3.2 times the springs-only
@@ -97,6 +107,18 @@ class AnchorNetwork:
         np.add.at(A, self.springs[:, 1], quartic)
         swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
         return 5.0 * np.einsum("ij,ij->i", A, A) / np.maximum(swl, 1e-300)
+
+    def star_isotropy(self) -> np.ndarray:
+        """(N,) smallest over largest eigenvalue of each anchor's spring-star Gram matrix Σ_{s∋i} d_s d_sᵀ (d_s the
+        spring's rest vector): 1/3-ish for a star spread through a solid, near 0 for one lying in a plane or along a
+        line (a part one or two anchors thick), whose volume change it cannot measure."""
+        d = self.anchors[self.springs[:, 1]] - self.anchors[self.springs[:, 0]]
+        outer = d[:, :, None] * d[:, None, :]
+        gram = np.zeros((self.count, 3, 3))
+        np.add.at(gram, self.springs[:, 0], outer)
+        np.add.at(gram, self.springs[:, 1], outer)
+        ev = np.linalg.eigvalsh(gram)
+        return ev[:, 0] / np.maximum(ev[:, 2], 1e-300)
 
     def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""

@@ -164,3 +164,21 @@ def test_drop_rebound_falls_with_poisson_ratio_as_the_referees_does():
     print("rebound peaks", peaks)
     assert abs(peaks[0.25, True] - peaks[0.3, False]) < 2e-4  # ν 1/4: springs only, whatever the setting
     assert 0.003 < peaks[0.25, True] - peaks[0.3, True] < 0.007
+
+
+def test_flat_stars_run_with_springs_only():
+    """A plate one or two anchors thick (96 anchors in 0.3 × 0.3 × 0.05 m): its stars cannot measure a volume
+    change, so those anchors run springs-only (ν = 1/4, the springs-only network's spring constants), with a
+    warning; a cube of the same material gets the term at every anchor."""
+    plate = Body.from_mesh(trimesh.creation.box(extents=(0.3, 0.3, 0.05)))
+    mat = HomogeneousMaterial(5e5, 0.3, 1000.0)
+    on = sm.prepare(plate, mat, Scenario(), [0.0, 0.01], settings={"anchors": 96})
+    off = sm.prepare(plate, mat, Scenario(), [0.0, 0.01], settings={"anchors": 96, "volumetric": False})
+    assert np.all(on.network.star_isotropy() < network.MIN_STAR_ISOTROPY)
+    np.testing.assert_array_equal(on.poisson_ratio, 0.25)
+    np.testing.assert_array_equal(on.volume_unit, 0.0)
+    np.testing.assert_allclose(on.spring_kappa, off.spring_kappa, rtol=1e-12)
+    assert any("too flat" in w for w in on.warnings)
+    cube = cube_sim(0.3, 96)
+    np.testing.assert_allclose(cube.poisson_ratio, 0.3)
+    assert np.all(cube.volume_unit > 0) and not any("too flat" in w for w in cube.warnings)
