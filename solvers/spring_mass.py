@@ -180,6 +180,9 @@ class SpringMassSimulation(Simulation):
         self.poisson_ratio = np.full(n, NETWORK_POISSON_RATIO)
         if settings.volumetric:
             self.poisson_ratio = np.clip(net.nu, NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
+            if np.any(net.nu > MAX_NETWORK_POISSON_RATIO):
+                self.warnings.append(f"Poisson's ratio up to {float(net.nu.max()):.3g} runs as {MAX_NETWORK_POISSON_RATIO} "
+                                     "in the spring-mass network (its explicit substep would shrink as 1/sqrt(1 − 2ν))")
             flat = (net.star_isotropy() < MIN_STAR_ISOTROPY) & (self.poisson_ratio > NETWORK_POISSON_RATIO)
             if np.any(flat):
                 self.poisson_ratio[flat] = NETWORK_POISSON_RATIO
@@ -290,7 +293,7 @@ class SpringMassSimulation(Simulation):
         return gn * S[self._he_src], cn * S
 
     def volume_rows(self, vol_stiffness: np.ndarray) -> np.ndarray:
-        """(N,) 1/s² · kg: the volumetric term's per-anchor bound Σ_{k∋a} s_k ‖b_ka‖ S_k (N/m) for star stiffnesses
+        """(N,) N/m: the volumetric term's per-anchor bound Σ_{k∋a} s_k ‖b_ka‖ S_k on ω² m_a for star stiffnesses
         s (N,) J (:meth:`_volume_bound_weights`)."""
         he_w, own_w = self._vol_bound
         s = np.asarray(vol_stiffness, np.float64)

@@ -70,6 +70,9 @@ def test_poisson_split_gives_the_material_moduli():
     assert lam_x[-1] == network.poisson_split(network.MAX_NETWORK_POISSON_RATIO)[1]
     with pytest.raises(UserError):
         sm.SpringMassSettings(volumetric="yes")
+    capped = cube_sim(0.49, 60)
+    np.testing.assert_allclose(capped.poisson_ratio, network.MAX_NETWORK_POISSON_RATIO)
+    assert any("runs as 0.45" in w for w in capped.warnings)
 
 
 def test_forces_are_the_energy_gradient_and_conserve_momentum():
