@@ -49,7 +49,7 @@ class SpringMassSettings(SolverSettings):
     stiffness_calibration: c_E (see module docstring).
     volumetric: the volumetric term per anchor that gives the network the material's Poisson ratio ν (springs
         rescaled to the material's shear modulus plus ½ λ_extra V (J − 1)² per anchor star, :mod:`.spring_mass`);
-        False: springs only (ν = 1/4 whatever the material says, about 1.6 times the substep rate on the CPU).
+        False: springs only (ν = 1/4 whatever the material says; 1.6–1.8 times the substep rate on the CPU).
     lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
         1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`.spring_mass.GPU_LANES_PER_ANCHOR` on a GPU,
         1 on the CPU.
