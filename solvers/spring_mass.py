@@ -30,13 +30,25 @@ The solid is a network of *anchors* (point masses) joined by springs:
 * **Forces.**  Springs are linear in their length change; a dashpot along each spring damps
   the relative velocity along it (only with ``material_damping``).  Gravity and the
   ``wind`` acceleration act on every anchor; drags act on the absolute velocity.
+* **Volumetric term** (``volumetric``, on by default).  Each anchor's spring star has the least-squares
+  deformation gradient F_i = (Σ_h d_h d0_hᵀ) G_i⁻¹ (G_i = Σ_h d0_h d0_hᵀ, scaled so det F_i = 1 at rest; the
+  same star fit as the tracked points' rotations) and stores W_i = ½ V_i λ_extra,i (J_i − 1)², J_i = det F_i.
+  With A_i = V_i λ_extra,i (J_i − 1) cof(F_i) G_i⁻¹ (a first pass per substep) the force on anchor i is
+  Σ_h (A_i + A_j)(X_j − X_i) over its half-edges (the second, gathering pass: its own star's gradient and that
+  of every star it belongs to — the half-edges are symmetric).  The forces of one star sum to zero and exert no
+  torque (momentum and angular momentum are conserved); J is rotation invariant, so rigid rotations store no
+  energy.  The form (J − 1)² rather than (ln J)²: the same at small strain, but finite for a star squashed
+  flat or inverted in a hard impact (ln J has no value at J ≤ 0), which an explicit step must survive.
+  Plasticity moves only the springs' rest lengths: the term keeps each star's rest volume (von Mises flow is
+  isochoric).
 * **Integration.**  Leapfrog: semi-implicit (symplectic) Euler with the velocities kept half a
   substep behind the positions (a half kick v −= Δt/2 a before the first substep, and
   v += (Δt − Δt')/2 a where the substep changes to Δt'), so positions are second-order accurate — a
   free fall is exact instead of drifting by g·t·Δt/2 (the velocities of ``particle_states`` are
   these half-step velocities); the substep is a fraction ``safety`` of
   the stability limit of the stiffest / most damped anchor (Gershgorin bound on M⁻¹K and
-  M⁻¹C): ``ω² = max_i 2 Σ_s κ_s / m_i``, ``γ = max_i 2 Σ_s c_s / m_i``,
+  M⁻¹C): ``ω² = max_i (2 Σ_s κ_s + r_i) / m_i``, ``γ = max_i 2 Σ_s c_s / m_i``, r_i the volumetric term's
+  per-anchor bound (:meth:`SpringMassSimulation.volume_rows`),
   ``dt ≤ safety · 4 / (γ + sqrt(γ² + 4 ω²))``.  Drags are applied implicitly.  Dashpots are
   explicit, so a strong ``material_damping`` (viscous time ρℓ²/η below the elastic substep,
   roughly η > ℓ sqrt(ρE)) makes the substep shorter in proportion — the cost of the exact
@@ -71,22 +83,26 @@ one in least squares, 5 ‖Σ_{s∋i} w L d⊗d⊗d⊗d‖² / Σ_{s∋i} w L (:
 (:data:`.spring_mass_settings.STIFFNESS_CALIBRATION`) corrects the affine estimate for the non-affine relaxation
 of a disordered network and for the surface; it was measured on a clamped bar under
 gravity (static elongation and axial period, both against the continuum) — see
-``docs/spring_mass.md``.  The network's Poisson ratio is 1/4 whatever ν says (ν is not
-used).  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly).
+``docs/spring_mass.md``.  Springs alone give ν = 1/4; for the material's ν (cell mean ν_i) the springs are scaled
+by 1.25 / (1 + ν_i) (the material's shear modulus μ) and the volumetric term adds λ_extra = λ − μ
+(:func:`.spring_mass_network.poisson_split`; ν below 1/4 runs as ν = 1/4, above
+:data:`.spring_mass_network.MAX_NETWORK_POISSON_RATIO` = 0.45 as 0.45).  With the model's explicit k the same
+holds with E_i = the modulus k stands for (:func:`.spring_mass_network.youngs_modulus_from_stiffness`) and ν_i
+from the material field.  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly).
 
 **Effects.**
 ``linear_drag`` / ``quadratic_drag`` / ``wind``: forces on every anchor as the registry says.
 ``material_damping`` (η_v Pa·s): dashpots on all springs, ``c_s = ½ (d_i + d_j) / L_s`` with
 ``d_i = c_E · 30 η_v V_i / Σ_{s∋i} L_s`` — the same affine argument with the network's
-viscous "shear modulus" S_c / 15 set to η_v (its volumetric part equals the shear part, as
-for the elastic network); dashpots leave rigid motion alone.
+viscous "shear modulus" S_c / 15 set to η_v (its volumetric part equals the shear part; the
+volumetric term has no dashpot); dashpots leave rigid motion alone.
 ``plasticity`` (σ_y Pa): a spring whose strain exceeds ε_y = σ_y / Ē_s (Ē_s the mean of its
 ends' E: the uniaxial yield strain) has its rest length moved so its strain stays at ±ε_y —
 permanent deformation.  Classes with von Mises plasticity (metal, plasticine) use their
 class yield stress the same way.
 ``ground_friction`` (μ): Coulomb friction at the ground (above).
-``stiffness_region`` (factor): multiplies k_i (and E_i for the yield strain) of the anchors
-in the region.
+``stiffness_region`` (factor): multiplies k_i (and E_i for the yield strain and λ_extra,i) of the
+anchors in the region.
 """
 
 from __future__ import annotations
@@ -107,16 +123,13 @@ from .effects import PhysicsTerms
 from .material_sampling import MaterialSpec
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA, RIGID_GROUND_STIFFNESS
-from .spring_mass_network import (build_network, softness_weights, stiffness_from_youngs_modulus,
+from .spring_mass_network import (MAX_NETWORK_POISSON_RATIO, MIN_STAR_ISOTROPY, NETWORK_POISSON_RATIO, build_network,
+                                  p_wave_per_e, poisson_split, softness_weights, stiffness_from_youngs_modulus,
                                   youngs_modulus_from_stiffness)
 from .spring_mass_settings import DEFAULT_ANCHORS, DEFAULT_SOFTNESS, SpringMassSettings  # noqa: F401 - DEFAULT_SOFTNESS: public
 
 SPRING_PARAM_COUNT = DEFAULT_ANCHORS + 1
 """Length of the model's spring-mass vector (k ∈ R^{N_a}, η): 2049."""
-NETWORK_POISSON_RATIO = 0.25
-"""Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ)."""
-P_WAVE_PER_E = (1 - NETWORK_POISSON_RATIO) / ((1 + NETWORK_POISSON_RATIO) * (1 - 2 * NETWORK_POISSON_RATIO))
-"""M / E = (1 − ν) / ((1 + ν)(1 − 2ν)) of the network's material (ν = 1/4): its P-wave modulus per unit E."""
 AFFINE_DASHPOT_FACTOR = 30.0
 """d_i = c_E · 30 η_v V_i / Σ L_s (affine network, viscous shear modulus S_c/15 = η_v)."""
 GPU_LANES_PER_ANCHOR = 32
@@ -130,8 +143,9 @@ class SpringMassSimulation(Simulation):
     Public attributes (numpy, SI): ``network`` (:class:`.spring_mass_network.AnchorNetwork`), ``stiffness`` (N,) N,
     ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
     ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping``, ``youngs_modulus`` (N,) Pa the
-    stiffness stands for, ``inv_mass`` (N,) (0 = clamped), ``contact_offset`` m (anchors touch the
-    ground this far above it).
+    stiffness stands for, ``poisson_ratio`` (N,) the ν each anchor realises, ``spring_factor`` (N,) and
+    ``volume_unit`` (N,) m³ (λ_extra V / E) of the volumetric term, ``inv_mass`` (N,) (0 = clamped),
+    ``contact_offset`` m (anchors touch the ground this far above it).
     """
 
     solver = "spring_mass"
@@ -162,6 +176,22 @@ class SpringMassSimulation(Simulation):
         else:
             self.stiffness = stiffness_from_youngs_modulus(net, net.E, settings)
             self.youngs_modulus = net.E.copy()
+        # Poisson's ratio: springs scaled to the material's shear modulus, the volumetric term adds λ − μ
+        # (not for anchors whose star is too flat to measure its volume change)
+        self.poisson_ratio = np.full(n, NETWORK_POISSON_RATIO)
+        if settings.volumetric:
+            self.poisson_ratio = np.clip(net.nu, NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
+            if np.any(net.nu > MAX_NETWORK_POISSON_RATIO):
+                self.warnings.append(f"Poisson's ratio up to {float(net.nu.max()):.3g} runs as {MAX_NETWORK_POISSON_RATIO} "
+                                     "in the spring-mass network (its explicit substep would shrink as 1/sqrt(1 − 2ν))")
+            flat = (net.star_isotropy() < MIN_STAR_ISOTROPY) & (self.poisson_ratio > NETWORK_POISSON_RATIO)
+            if np.any(flat):
+                self.poisson_ratio[flat] = NETWORK_POISSON_RATIO
+                self.warnings.append(f"{int(flat.sum())} of {n} anchors have spring stars too flat to measure a volume "
+                                     "change (a part one or two anchors thick): they run with springs only (Poisson "
+                                     "ratio 1/4 there); more anchors resolve the part")
+        self.spring_factor, lam_per_E = poisson_split(self.poisson_ratio)
+        self.volume_unit = lam_per_E * net.volume
         sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
         self.spring_kappa = self._kappa(self.stiffness)
@@ -194,8 +224,14 @@ class SpringMassSimulation(Simulation):
         gram = np.zeros((n, 3, 3))
         np.add.at(gram, self._he_src, d0[:, :, None] * d0[:, None, :])
         tr = np.trace(gram, axis1=1, axis2=2)
+        rest_F = gram.copy()
         gram += (1e-6 * tr + 1e-30)[:, None, None] * np.eye(3)
         self._gram_inv = np.linalg.inv(gram)
+        # the regularisation leaves det F ≈ 1 − 1e-5 at rest: scaled so that it is 1 (no pre-stress in the volumetric
+        # term; the star rotations are the polar parts, which a positive scale leaves alone)
+        rest_J = np.linalg.det(rest_F @ self._gram_inv)
+        self._gram_inv *= np.where(rest_J > 1e-12, np.abs(rest_J), 1.0)[:, None, None] ** (-1.0 / 3.0)
+        self._vol_bound = self._volume_bound_weights(d0)
         # binding of tracked points
         from scipy.spatial import cKDTree
 
@@ -236,9 +272,33 @@ class SpringMassSimulation(Simulation):
         return start, allp[order] - net.anchors[owner[order]]
 
     def _kappa(self, k_anchor: np.ndarray) -> np.ndarray:
-        """(S,) N/m spring constants for per-anchor stiffness (N,) newtons."""
+        """(S,) N/m spring constants for per-anchor stiffness (N,) newtons (times each anchor's shear factor
+        ``spring_factor``, :func:`.spring_mass_network.poisson_split`)."""
         s = self.network.springs
-        return 0.5 * (k_anchor[s[:, 0]] + k_anchor[s[:, 1]]) * self.spring_weight / self.network.rest_length
+        kf = k_anchor * self.spring_factor
+        return 0.5 * (kf[s[:, 0]] + kf[s[:, 1]]) * self.spring_weight / self.network.rest_length
+
+    def _volume_bound_weights(self, d0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weights of the volumetric term's bound on ω² (:meth:`stable_substep`): (H,) per half-edge and (N,) per
+        anchor, 1/m².  Linearised, star k's energy is ½ s_k (b_k·u)² with b_k's block g_h = G_k⁻¹ d0_h on
+        neighbour j_h and c_k = −Σ_h g_h on the anchor itself (1/m); Cauchy–Schwarz with weights ‖b_ka‖ gives
+        uᵀK u ≤ Σ_a ‖u_a‖² Σ_{k∋a} s_k ‖b_ka‖ S_k, S_k = Σ_a ‖b_ka‖ — a per-anchor bound like the springs'
+        Gershgorin one, so the two add."""
+        n = self.network.count
+        g = np.einsum("hij,hj->hi", self._gram_inv[self._he_src], d0)
+        gn = np.linalg.norm(g, axis=1)
+        c = np.zeros((n, 3))
+        np.add.at(c, self._he_src, -g)
+        cn = np.linalg.norm(c, axis=1)
+        S = np.bincount(self._he_src, gn, n) + cn
+        return gn * S[self._he_src], cn * S
+
+    def volume_rows(self, vol_stiffness: np.ndarray) -> np.ndarray:
+        """(N,) N/m: the volumetric term's per-anchor bound Σ_{k∋a} s_k ‖b_ka‖ S_k on ω² m_a for star stiffnesses
+        s (N,) J (:meth:`_volume_bound_weights`)."""
+        he_w, own_w = self._vol_bound
+        s = np.asarray(vol_stiffness, np.float64)
+        return s * own_w + np.bincount(self._he_dst, s[self._he_src] * he_w, self.network.count)
 
     def _upload_static(self):
         wp = self._wp
@@ -271,14 +331,17 @@ class SpringMassSimulation(Simulation):
         ey = np.where(np.isfinite(ys), ys / E_s, BIG)
         he = self._he_spring
         return {"kappa": kappa_s[he], "dashpot": damp_s[he], "yield_strain": np.minimum(ey, BIG)[he], "kappa_s": kappa_s,
-                "dashpot_s": damp_s}
+                "dashpot_s": damp_s, "vol_stiffness": self.volume_unit * E_eff}
 
-    def stable_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray) -> float:
-        """Largest stable substep (s) for spring constants (S,) N/m and dashpots (S,) N·s/m, times ``safety``."""
+    def stable_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray, vol_stiffness: np.ndarray | None = None) -> float:
+        """Largest stable substep (s) for spring constants (S,) N/m, dashpots (S,) N·s/m and the volumetric term's
+        star stiffnesses (N,) J (None: none), times ``safety``."""
         net = self.network
         n = net.count
         s = net.springs
         ksum = np.bincount(s[:, 0], kappa_s, n) + np.bincount(s[:, 1], kappa_s, n)
+        if vol_stiffness is not None:
+            ksum = ksum + 0.5 * self.volume_rows(vol_stiffness)
         csum = np.bincount(s[:, 0], dashpot_s, n) + np.bincount(s[:, 1], dashpot_s, n)
         free = self.inv_mass > 0
         if not np.any(free):
@@ -300,13 +363,26 @@ class SpringMassSimulation(Simulation):
         x = np.asarray(positions, np.float64)
         v = np.asarray(velocities, np.float64)
         L = net.rest_length if rest_lengths is None else rest_lengths
-        kappa = self.spring_kappa if terms is None else self.env_arrays(terms)["kappa_s"]
+        env = None if terms is None else self.env_arrays(terms)
+        kappa = self.spring_kappa if env is None else env["kappa_s"]
+        vol = self.volume_unit * self.youngs_modulus if env is None else env["vol_stiffness"]
         l = np.linalg.norm(x[net.springs[:, 1]] - x[net.springs[:, 0]], axis=1)
         acc = self.scenario.gravity + (0 if terms is None else terms.extra_acceleration)
         kin = 0.5 * float(np.sum(net.mass * np.sum(v * v, axis=1)))
-        ela = 0.5 * float(np.sum(kappa * (l - L) ** 2))
+        ela = 0.5 * float(np.sum(kappa * (l - L) ** 2)) + 0.5 * float(np.sum(vol * (self.star_volume_ratio(x) - 1.0) ** 2))
         pot = -float(np.sum(net.mass * (x @ acc)))
         return {"kinetic": kin, "elastic": ela, "potential": pot, "total": kin + ela + pot}
+
+    def star_volume_ratio(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) J_i = det F_i of every anchor's spring star (least-squares F, as :func:`.spring_mass_kernels.star_stress`)
+        at anchor positions (N, 3) m."""
+        net = self.network
+        x = np.asarray(positions, np.float64)
+        d = x[self._he_dst] - x[self._he_src]
+        d0 = net.anchors[self._he_dst] - net.anchors[self._he_src]
+        B = np.zeros((net.count, 3, 3))
+        np.add.at(B, self._he_src, d[:, :, None] * d0[:, None, :])
+        return np.linalg.det(B @ self._gram_inv)
 
     # -------------------------------------------------------------------------------- running
     def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Progress | None,
@@ -323,11 +399,14 @@ class SpringMassSimulation(Simulation):
         T = len(self.frame_times)
         P = len(self.tracked_rest)
         envs = [self.env_arrays(t) for t in terms_list]
-        dt_max = min(self.stable_substep(e["kappa_s"], e["dashpot_s"]) for e in envs)
+        dt_max = min(self.stable_substep(e["kappa_s"], e["dashpot_s"], e["vol_stiffness"]) for e in envs)
         stack = lambda key: np.stack([e[key] for e in envs]).astype(np.float32)  # noqa: E731
         d_kappa = wp.array(stack("kappa"), dtype=wp.float32, device=dev)
         d_dash = wp.array(stack("dashpot"), dtype=wp.float32, device=dev)
         d_yield = wp.array(stack("yield_strain"), dtype=wp.float32, device=dev)
+        has_volume = int(any(np.any(e["vol_stiffness"] > 0) for e in envs))
+        d_vol = wp.array(stack("vol_stiffness"), dtype=wp.float32, device=dev)
+        d_stress = wp.zeros((n_env, n), dtype=wp.mat33, device=dev)
         rest0 = net.rest_length[self._he_spring].astype(np.float32)
         d_rest = wp.array(np.tile(rest0, (n_env, 1)), dtype=wp.float32, device=dev)
         accel = np.stack([self.scenario.gravity + t.extra_acceleration for t in terms_list]).astype(np.float32)
@@ -337,7 +416,7 @@ class SpringMassSimulation(Simulation):
         ground_law = np.array([(min(t.ground_stiffness, RIGID_GROUND_STIFFNESS), t.ground_damping, t.friction_mu) for t in terms_list])
         d_ground_law = wp.array(ground_law.astype(np.float32), dtype=wp.vec3, device=dev)
         # each anchor's rigid-floor spring k_r = β² M A / ℓ (solvers/contact.py), M of the network's material
-        M = P_WAVE_PER_E * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
+        M = p_wave_per_e(self.poisson_ratio)[None] * self.youngs_modulus[None] * np.stack([t.E_multiplier(n) for t in terms_list])
         rigid_k = RIGID_CONTACT_BETA["spring_mass"] ** 2 * M * (self.contact_area / self.contact_size)[None]
         eta = np.array([t.damping_eta for t in terms_list])[:, None]
         d_rigid_k = wp.array(rigid_k.astype(np.float32), dtype=wp.float32, device=dev)
@@ -359,18 +438,27 @@ class SpringMassSimulation(Simulation):
         use_graph = wp.get_device(dev).is_cuda
         lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
 
+        def launch_stress(a, record_cmd=False):
+            """Launch (or record) the volumetric term's first pass on buffer a's positions."""
+            return wp.launch_tiled(K.star_stress, dim=(n_env, n), device=dev, block_dim=lanes, record_cmd=record_cmd,
+                                   inputs=[bufs[a][0], self._d_rest_pos, self._d_start, self._d_nbr, self._d_gram_inv,
+                                           d_vol, d_stress])
+
         def launch_substep(a, b, dt, record_cmd=False):
-            """Launch (or record) one substep from buffer a to buffer b."""
+            """Launch (or record) one substep from buffer a to buffer b (the stress pass first, when it is on)."""
+            first = [launch_stress(a, record_cmd)] if has_volume else []
             inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash, d_yield,
                       self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad,
                       d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c, ground, has_ground,
-                      float(dt)]
-            return wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
-                                   record_cmd=record_cmd)
+                      d_stress, has_volume, float(dt)]
+            return first + [wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev,
+                                            block_dim=lanes, record_cmd=record_cmd)]
 
         cmds = []
         if not use_graph:
-            cmds = [launch_substep(a, 1 - a, 1e-4, record_cmd=True) for a in (0, 1)]
+            recorded = [launch_substep(a, 1 - a, 1e-4, record_cmd=True) for a in (0, 1)]
+            cmds = [c for r in recorded for c in r]
+            dt_cmds = [r[-1] for r in recorded]  # the substep launches (the stress pass has no dt)
         graphs: dict = {}
 
         def output(frame: int):
@@ -392,9 +480,12 @@ class SpringMassSimulation(Simulation):
             """Leapfrog bookkeeping: v += τ a(x, v) on the current state (buffer 0), positions unchanged.  The
             kicked velocities go to buffer 1 (free between frames) and are copied back: every anchor's dashpots
             read its neighbours' velocities from before the kick."""
+            if has_volume:
+                launch_stress(0)
             wp.launch(K.velocity_kick, dim=(n_env, n), device=dev,
                       inputs=[bufs[0][0], bufs[0][1], bufs[1][1], d_rest, d_kappa, d_dash, d_yield, self._d_start,
-                              self._d_nbr, self._d_inv_mass, d_accel, d_lin, d_quad, float(tau)])
+                              self._d_nbr, self._d_inv_mass, d_accel, d_lin, d_quad, self._d_rest_pos, d_stress,
+                              has_volume, float(tau)])
             wp.copy(bufs[0][1], bufs[1][1])
 
         total_substeps = 0
@@ -428,7 +519,7 @@ class SpringMassSimulation(Simulation):
                     graphs[key] = cap.graph
                 wp.capture_launch(graphs[key])
             else:
-                for c in cmds:
+                for c in dt_cmds:
                     c.set_param_by_name("dt", float(dt))
                 for s in range(n_sub // 2):
                     for c in cmds:

@@ -58,16 +58,82 @@ def half_edge_force(e: int, h: int, xi: wp.vec3, vi: wp.vec3, x: wp.array2d(dtyp
 def spring_force_sum(e: int, i: int, first: int, stride: int, xi: wp.vec3, vi: wp.vec3,
                      x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), rest: wp.array2d(dtype=float),
                      kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
-                     yield_strain: wp.array2d(dtype=float), start: wp.array(dtype=int), nbr: wp.array(dtype=int)):
+                     yield_strain: wp.array2d(dtype=float), start: wp.array(dtype=int), nbr: wp.array(dtype=int),
+                     x_rest: wp.array(dtype=wp.vec3), stress: wp.array2d(dtype=wp.mat33), has_volume: int):
     """Sum (N) of :func:`half_edge_force` over anchor ``i``'s half-edges start[i] + first, + stride, ... (all of
-    them with first 0, stride 1; one lane's share in a block of lanes)."""
+    them with first 0, stride 1; one lane's share in a block of lanes), plus, when has_volume != 0, the volumetric
+    term's force Σ_h (A_i + A_j)(X_j − X_i) (A = :func:`star_stress`'s stress[e, ·], N/m; X = x_rest, m): the
+    gradient of the anchor's own star energy and of every star it belongs to (the half-edges are symmetric: j is in
+    i's star exactly when i is in j's)."""
     f = wp.vec3(0.0, 0.0, 0.0)
     h = start[i] + first
     stop = start[i + 1]
-    while h < stop:
-        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
-        h += stride
+    if has_volume != 0:
+        Xi = x_rest[i]
+        d0_sum = wp.vec3(0.0, 0.0, 0.0)
+        while h < stop:
+            f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+            j = nbr[h]
+            d0 = x_rest[j] - Xi
+            f = f + stress[e, j] * d0
+            d0_sum = d0_sum + d0
+            h += stride
+        f = f + stress[e, i] * d0_sum
+    else:
+        while h < stop:
+            f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+            h += stride
     return f
+
+
+@wp.func
+def star_deformation(e: int, i: int, x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3),
+                     start: wp.array(dtype=int), nbr: wp.array(dtype=int), gram_inv: wp.array(dtype=wp.mat33)):
+    """F_i = (Σ_h d_h d0_hᵀ) (Σ_h d0_h d0_hᵀ)⁻¹, the least-squares deformation gradient of anchor ``i``'s spring
+    star (d = x_j − x_i now, d0 at rest; gram_inv[i] the inverse of the rest Gram matrix, 1/m²)."""
+    xi = x[e, i]
+    x0 = x_rest[i]
+    B = wp.mat33(0.0)
+    for h in range(start[i], start[i + 1]):
+        j = nbr[h]
+        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
+    return B * gram_inv[i]
+
+
+@wp.kernel
+def star_stress(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3), start: wp.array(dtype=int),
+                nbr: wp.array(dtype=int), gram_inv: wp.array(dtype=wp.mat33), vol_stiffness: wp.array2d(dtype=float),
+                stress: wp.array2d(dtype=wp.mat33)):
+    """First pass of the volumetric term, by a block of lanes per anchor as :func:`spring_substep` (lane ``l`` sums
+    the half-edges start[i] + l, + block_dim, ...; a tile reduction joins them).  Per anchor star, energy
+    W_i = ½ s_i (J_i − 1)², J_i = det F_i (F_i as :func:`star_deformation`), s_i = vol_stiffness[e, i] = V_i λ_extra,i
+    (J); writes A_i = s_i (J_i − 1) cof(F_i) G_i⁻¹ (N/m), so ∂W_i/∂x_j = A_i (X_j − X_i) for a neighbour j and
+    −Σ_h A_i (X_j − X_i) for the anchor itself.  cof(F) = ∂J/∂F (columns c1×c2, c2×c0, c0×c1 of F's columns c): J is
+    rotation invariant, so the forces store no energy under rigid rotation, and they sum to zero over the star
+    (momentum)."""
+    e, i, lane = wp.tid()
+    s = vol_stiffness[e, i]
+    if s == 0.0:  # the same for every lane of the block
+        if lane == 0:
+            stress[e, i] = wp.mat33(0.0)
+        return
+    xi = x[e, i]
+    x0 = x_rest[i]
+    B = wp.mat33(0.0)
+    h = start[i] + lane
+    stop = start[i + 1]
+    while h < stop:
+        j = nbr[h]
+        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
+        h += wp.block_dim()
+    total = wp.tile_sum(wp.tile(B, preserve_type=True))
+    if lane == 0:
+        G = gram_inv[i]
+        F = total[0] * G
+        Ft = wp.transpose(F)
+        cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+        J = wp.dot(Ft[0], wp.cross(Ft[1], Ft[2]))
+        stress[e, i] = (s * (J - 1.0)) * (cof * G)
 
 
 @wp.func
@@ -113,7 +179,7 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    quad_drag: wp.array(dtype=float), ground_law: wp.array(dtype=wp.vec3),
                    contact_low: wp.array2d(dtype=float), contact_area: wp.array(dtype=float),
                    rigid_k: wp.array2d(dtype=float), rigid_c: wp.array2d(dtype=float), ground: float,
-                   has_ground: int, dt: float):
+                   has_ground: int, stress: wp.array2d(dtype=wp.mat33), has_volume: int, dt: float):
     """One semi-implicit Euler substep of anchor ``i`` in environment ``e``, by a block of lanes
     (``wp.launch_tiled``, dim (E, N), block_dim lanes: 1 on the CPU, 32 on a GPU).  Lane ``l`` sums the
     half-edges start[i] + l, + block_dim, ...; a tile reduction adds the lanes' forces and lane 0
@@ -128,7 +194,8 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     ground_law: (E,) (k_g Pa/m, c_g Pa·s/m, μ) of the contact law at the plane z = ground (when has_ground != 0);
     contact_low: (E, N) m, depth of each anchor cell's lowest point below the anchor (:func:`contact_depths`);
     contact_area: (N,) m²; rigid_k: (E, N) N/m, each anchor's rigid-floor spring; rigid_c: (E, N) N·s/m, its
-    material's Kelvin–Voigt damper (:mod:`.contact`).
+    material's Kelvin–Voigt damper (:mod:`.contact`); stress: (E, N) N/m, :func:`star_stress` of x (read when
+    has_volume != 0).
     """
     e, i, lane = wp.tid()
     im = inv_mass[i]
@@ -139,7 +206,8 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
         return
     xi = x[e, i]
     vi = v[e, i]
-    f = spring_force_sum(e, i, lane, wp.block_dim(), xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
+    f = spring_force_sum(e, i, lane, wp.block_dim(), xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr,
+                         x_rest, stress, has_volume)
     total = wp.tile_sum(wp.tile(f, preserve_type=True))
     if lane == 0:
         integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
@@ -152,7 +220,8 @@ def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), v_
                   dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
                   start: wp.array(dtype=int), nbr: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
                   accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
-                  quad_drag: wp.array(dtype=float), tau: float):
+                  quad_drag: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
+                  stress: wp.array2d(dtype=wp.mat33), has_volume: int, tau: float):
     """Velocity kick v += τ a(x, v) of anchor ``i`` in environment ``e`` (positions unchanged), with the forces of
     :func:`spring_substep` (drags implicit): the leapfrog start (τ = −Δt/2: the velocities become those half a
     substep earlier) and its correction when the substep changes from Δt to Δt' (τ = (Δt − Δt')/2).  Same arrays
@@ -165,7 +234,8 @@ def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), v_
         v_out[e, i] = vi
         return
     xi = x[e, i]
-    f = spring_force_sum(e, i, 0, 1, xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr)
+    f = spring_force_sum(e, i, 0, 1, xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr, x_rest, stress,
+                         has_volume)
     v_out[e, i] = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, tau)
 
 
@@ -178,13 +248,7 @@ def anchor_rotations(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec
     F_i = (Σ_h d_h d0_hᵀ) (Σ_h d0_h d0_hᵀ)⁻¹ with d = x_j − x_i now and d0 at rest; R_i = U Vᵀ.
     """
     e, i = wp.tid()
-    xi = x[e, i]
-    x0 = x_rest[i]
-    B = wp.mat33(0.0)
-    for h in range(start[i], start[i + 1]):
-        j = nbr[h]
-        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
-    F = B * gram_inv[i]
+    F = star_deformation(e, i, x, x_rest, start, nbr, gram_inv)
     U = wp.mat33()
     S = wp.vec3()
     V = wp.mat33()

@@ -1,7 +1,8 @@
 """Small-deformation statics and vibration modes of a prepared spring-mass network (:mod:`.spring_mass`).
 
 Linearised about the rest configuration, the network's springs give the stiffness matrix
-K = Σ_s κ_s (e_j − e_i)(e_j − e_i)ᵀ ⊗ n_s n_sᵀ (3N × 3N, N/m; n_s the spring's rest direction) and its anchors the
+K = Σ_s κ_s (e_j − e_i)(e_j − e_i)ᵀ ⊗ n_s n_sᵀ (3N × 3N, N/m; n_s the spring's rest direction), the volumetric term
+(energy ½ s_k (J_k − 1)² per anchor star, J_k − 1 ≈ tr ∇u_k = b_k·u) adds Σ_k s_k b_k b_kᵀ, and its anchors the
 lumped mass matrix M = diag(m_i) ⊗ I₃.  With the pinned anchors held, :func:`static_response` solves K u = M a for a
 uniform body acceleration a (gravity) and :func:`vibration_modes` the lowest modes of K φ = ω² M φ.  A tracked point
 follows its anchors as in the solver (inverse-distance weights, each anchor's star rotation), linearised:
@@ -22,9 +23,28 @@ import numpy as np
 from ..core.errors import UserError
 
 
+def volume_gradient_matrix(sim):
+    """(N, 3N) scipy CSR, 1/m: row k is b_k, the linearised J_k − 1 = tr ∇u_k of anchor k's star (least-squares
+    gradient, as the solver's star_stress): g_h = G_k⁻¹ d0_h on neighbour j_h, −Σ_h g_h on k itself."""
+    import scipy.sparse as sp
+
+    net = sim.network
+    n = net.count
+    src, dst = sim._he_src, sim._he_dst
+    d0 = net.anchors[dst] - net.anchors[src]
+    g = np.einsum("hij,hj->hi", sim._gram_inv[src], d0)
+    own = np.zeros((n, 3))
+    np.add.at(own, src, -g)
+    comp = np.arange(3)
+    rows = np.concatenate([np.repeat(src, 3), np.repeat(np.arange(n), 3)])
+    cols = np.concatenate([(3 * dst[:, None] + comp).ravel(), (3 * np.arange(n)[:, None] + comp).ravel()])
+    return sp.csr_matrix((np.concatenate([g.ravel(), own.ravel()]), (rows, cols)), shape=(n, 3 * n))
+
+
 def stiffness_matrix(sim):
     """(3N, 3N) scipy CSR, N/m: the linearised stiffness of ``sim``'s springs (:class:`.spring_mass.SpringMassSimulation`,
-    its base spring constants ``spring_kappa``, no effects) at rest.  Row 3i + c is anchor i's force component c."""
+    its base spring constants ``spring_kappa``, no effects) and volumetric term (star stiffnesses
+    ``volume_unit · youngs_modulus``, J) at rest.  Row 3i + c is anchor i's force component c."""
     import scipy.sparse as sp
 
     net = sim.network
@@ -41,7 +61,12 @@ def stiffness_matrix(sim):
         rows.append(np.broadcast_to(r, block.shape).ravel())
         cols.append(np.broadcast_to(c, block.shape).ravel())
         vals.append((sign * block).ravel())
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
+    K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
+    vol = sim.volume_unit * sim.youngs_modulus
+    if np.any(vol > 0):
+        B = volume_gradient_matrix(sim)
+        K = (K + B.T @ sp.diags(vol) @ B).tocsr()
+    return K
 
 
 def _free_dofs(sim) -> np.ndarray:

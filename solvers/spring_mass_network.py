@@ -29,6 +29,22 @@ ANCHORS_ACROSS_THIN = 3.0
 """Anchors wanted through the thickness of thin parts (adaptive anchor sampling, :func:`select_anchors`)."""
 MAX_ANCHOR_REFINEMENT = 4.0
 """Thin parts get anchors at most this many times closer together than the uniform spacing."""
+NETWORK_POISSON_RATIO = 0.25
+"""Poisson's ratio of an isotropic central-force network (Cauchy relation λ = μ): the springs alone."""
+MIN_STAR_ISOTROPY = 0.1
+"""An anchor whose spring star is flatter than this (:meth:`AnchorNetwork.star_isotropy`: its thinnest direction
+carries under a tenth of its Gram matrix's largest eigenvalue, an rms thickness under ~1/3 of its length: a star in
+a part fewer than about :data:`ANCHORS_ACROSS_THIN` anchors thick) gets no volumetric term and unscaled springs
+(ν = 1/4 there): its least-squares F hardly measures the thickness change and G⁻¹ amplifies it ~1/isotropy times.
+Measured: the canonical cube's stars (512 / 2048 anchors) lie at 0.20 / 0.23 and above, the cantilever bar's at
+0.08 / 0.20 (512: under 1 % of them below 0.1); a 64-anchor 0.4 × 0.08 × 0.08 m bar's at 0.036-0.07 (46 of 64
+below 0.1), a 96-anchor 0.05 m plate's all below 0.02.  With 0.05, 52 of that 64-anchor bar's anchors kept the term
+and made its E/ρ refit less significant in the diagnosis (tests/test_diagnosis.py, stiffness-region case: share of
+the deformation excess 0.64, springs only 0.85, with 0.1 0.81)."""
+MAX_NETWORK_POISSON_RATIO = 0.45
+"""Largest ν the network realises (volumetric term, :func:`poisson_split`): the term's stiffness λ − μ grows as
+1/(1 − 2ν) and shortens the explicit substep with it (at ν 0.45 the P-wave modulus is 3.2 times the springs-only
+network's, the substep about 0.56 of it; at 0.49 it would be 0.26); a material above it runs at this ν."""
 
 
 def softness_weights(ranks: np.ndarray, neighbours: int, fixed_springs: int, softness: float) -> np.ndarray:
@@ -52,7 +68,8 @@ class AnchorNetwork:
 
     fill_points: (F, 3) m, samples of the solid; fill_volume: (F,) m³ each; fill_cell: (F,) anchor index.
     anchors: (N, 3) m rest positions in FPS order; volume: (N,) m³; mass: (N,) kg;
-    E: (N,) Pa (cell mean); material: (N,) class ids; pinned: (N,) bool (clamp or stationary class).
+    E: (N,) Pa (cell mean); nu: (N,) Poisson's ratio (cell mean); material: (N,) class ids;
+    pinned: (N,) bool (clamp or stationary class).
     springs: (S, 2) anchor indices (i < j); rank: (S,) int; rest_length: (S,) m.
     """
 
@@ -63,6 +80,7 @@ class AnchorNetwork:
     volume: np.ndarray
     mass: np.ndarray
     E: np.ndarray
+    nu: np.ndarray
     material: np.ndarray
     pinned: np.ndarray
     springs: np.ndarray
@@ -89,6 +107,18 @@ class AnchorNetwork:
         np.add.at(A, self.springs[:, 1], quartic)
         swl = np.bincount(self.springs[:, 0], wl, n) + np.bincount(self.springs[:, 1], wl, n)
         return 5.0 * np.einsum("ij,ij->i", A, A) / np.maximum(swl, 1e-300)
+
+    def star_isotropy(self) -> np.ndarray:
+        """(N,) smallest over largest eigenvalue of each anchor's spring-star Gram matrix Σ_{s∋i} d_s d_sᵀ (d_s the
+        spring's rest vector): 1/3-ish for a star spread through a solid, near 0 for one lying in a plane or along a
+        line (a part one or two anchors thick), whose volume change it cannot measure."""
+        d = self.anchors[self.springs[:, 1]] - self.anchors[self.springs[:, 0]]
+        outer = d[:, :, None] * d[:, None, :]
+        gram = np.zeros((self.count, 3, 3))
+        np.add.at(gram, self.springs[:, 0], outer)
+        np.add.at(gram, self.springs[:, 1], outer)
+        ev = np.linalg.eigvalsh(gram)
+        return ev[:, 0] / np.maximum(ev[:, 2], 1e-300)
 
     def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""
@@ -254,6 +284,7 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     volume = np.bincount(cell, fvol, n)
     mass = np.bincount(cell, fvol * mat.density, n)
     E_cell = np.bincount(cell, fvol * mat.E, n) / np.maximum(volume, 1e-300)
+    nu_cell = np.bincount(cell, fvol * mat.nu, n) / np.maximum(volume, 1e-300)
     # an anchor whose cell is empty (cannot happen for anchors drawn from the fill points, kept safe)
     empty = volume <= 0
     if np.any(empty):
@@ -261,6 +292,7 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
         volume[empty] = mean_v
         mass[empty] = mean_v * float(np.mean(mat.density))
         E_cell[empty] = float(np.mean(mat.E))
+        nu_cell[empty] = float(np.mean(mat.nu))
     a_mat = mat.material[a_idx]
     pinned = pinned_fill[a_idx]
     # springs: directed k-NN merged into undirected pairs with the lower rank
@@ -287,7 +319,7 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     rest = np.linalg.norm(anchors[springs[:, 1]] - anchors[springs[:, 0]], axis=1)
     if np.any(rest <= 0):
         raise UserError("two anchors coincide (duplicate points in the body); remove duplicate points")
-    return AnchorNetwork(fill, fvol, cell, anchors, volume, mass, E_cell, a_mat, pinned, springs, rank, rest, warnings)
+    return AnchorNetwork(fill, fvol, cell, anchors, volume, mass, E_cell, nu_cell, a_mat, pinned, springs, rank, rest, warnings)
 
 
 def anchor_positions(body: Body, anchors: int = DEFAULT_ANCHORS, scenario: Scenario | None = None) -> np.ndarray:
@@ -313,3 +345,26 @@ def youngs_modulus_from_stiffness(network: AnchorNetwork, k: np.ndarray, setting
     w = softness_weights(network.rank, settings.neighbours, settings.fixed_springs, settings.softness)
     swl = network.fabric_sums(w)
     return np.asarray(k, np.float64) * swl / (settings.stiffness_calibration * AFFINE_STIFFNESS_FACTOR * network.volume)
+
+
+def poisson_split(nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How the network realises Poisson's ratio ν (N,): (spring factor (N,), λ_extra / E (N,)).
+
+    The springs give λ = μ (ν = 1/4); scaled by 1.25 / (1 + ν) on the E calibration they give the material's
+    shear modulus μ = E / (2(1 + ν)), and the volumetric term per anchor (:mod:`.spring_mass`, energy
+    ½ λ_extra V (J − 1)²) adds λ_extra = λ − μ = E (4ν − 1) / (2(1 + ν)(1 − 2ν)), so the network has the
+    material's (E, ν).  ν is first clipped to [1/4, :data:`MAX_NETWORK_POISSON_RATIO`]: below 1/4, λ_extra would
+    be negative (a network of pair springs cannot have λ < μ); such material runs as today's springs-only network
+    (its E right, ν = 1/4).  Dimensionless.
+    """
+    v = np.clip(np.asarray(nu, np.float64), NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
+    factor = (1.0 + NETWORK_POISSON_RATIO) / (1.0 + v)
+    lam_extra = (4.0 * v - 1.0) / (2.0 * (1.0 + v) * (1.0 - 2.0 * v))
+    return factor, lam_extra
+
+
+def p_wave_per_e(nu: np.ndarray) -> np.ndarray:
+    """(N,) M / E = (1 − ν) / ((1 + ν)(1 − 2ν)), the P-wave modulus per unit E of the network at the ν (N,) it
+    realises (clipped as in :func:`poisson_split`)."""
+    v = np.clip(np.asarray(nu, np.float64), NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
+    return (1.0 - v) / ((1.0 + v) * (1.0 - 2.0 * v))

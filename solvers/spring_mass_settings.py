@@ -47,6 +47,9 @@ class SpringMassSettings(SolverSettings):
     max_substeps_per_frame: refuse (UserError) a run whose stability limit needs more substeps
         per frame interval than this (e.g. a huge ``material_damping`` η: dashpots are explicit).
     stiffness_calibration: c_E (see module docstring).
+    volumetric: the volumetric term per anchor that gives the network the material's Poisson ratio ν (springs
+        rescaled to the material's shear modulus plus ½ λ_extra V (J − 1)² per anchor star, :mod:`.spring_mass`);
+        False: springs only (ν = 1/4 whatever the material says; 1.6–1.8 times the substep rate on the CPU).
     lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
         1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`.spring_mass.GPU_LANES_PER_ANCHOR` on a GPU,
         1 on the CPU.
@@ -67,8 +70,12 @@ class SpringMassSettings(SolverSettings):
     max_substeps_per_frame: int = 200_000
     stiffness_calibration: float = STIFFNESS_CALIBRATION
     lanes_per_anchor: Optional[int] = None
+    volumetric: bool = True
 
     def __post_init__(self):
+        if not isinstance(self.volumetric, (bool, np.bool_)):
+            raise UserError(f"spring-mass setting 'volumetric' must be true or false, got {self.volumetric!r}")
+        self.volumetric = bool(self.volumetric)
         if self.lanes_per_anchor is not None:
             lanes = self.lanes_per_anchor
             if not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:

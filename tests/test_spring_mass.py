@@ -372,7 +372,8 @@ def test_velocity_kick_reads_the_velocities_from_before_the_kick():
     one = lambda value, dtype=float: wp.array(np.asarray(value), dtype=dtype, device="cpu")  # noqa: E731
     wp.launch(K.velocity_kick, dim=(1, 2), device="cpu",
               inputs=[x, v, v_out, two(0.1), two(100.0), two(5.0), two(K.BIG), one([0, 1, 2], int), one([1, 0], int),
-                      one([1.0, 1.0]), one(np.zeros((1, 3)), wp.vec3), one([0.0]), one([0.0]), 0.01])
+                      one([1.0, 1.0]), one(np.zeros((1, 3)), wp.vec3), one([0.0]), one([0.0]),
+                      one(x.numpy()[0], wp.vec3), wp.zeros((1, 2), dtype=wp.mat33, device="cpu"), 0, 0.01])
     out = v_out.numpy()[0]
     assert np.allclose(v.numpy(), v0)  # the input is left alone
     assert abs(out[0, 0]) < 1.0 and abs(out[1, 0]) < 1.0  # the dashpot slowed both down
