@@ -47,8 +47,8 @@ MEASURED_FLOORS: dict = {
         MeasuredDeparture("tip_sag", CANTILEVERS, 0.058),
     ),
     "spring_mass": (
-        MeasuredDeparture("tip_sag", CANTILEVERS, -0.070),
-        MeasuredDeparture("rebound_peak", ("drop",), 0.068),
+        MeasuredDeparture("contact_duration", ("drop",), 0.121),
+        MeasuredDeparture("tip_sag", CANTILEVERS, -0.061),
     ),
     "lbs": (
         MeasuredDeparture("tip_sag", CANTILEVERS, -0.188),
