@@ -57,9 +57,10 @@ still coming down (4 ms after touchdown of the friction_drop scene their mean ve
 the centre's still −0.8 m/s; 11 sign changes of their vertical speed in the 60 ms impact, 2.5 with ζ = 1), so they were
 off the floor, where friction cannot act, for much of the impact: the friction impulse of a sliding cube landing
 flat (μ 0.4, 1 m/s, 0.05 m) was 13–16 % below the referee's, and the diagnosis fitted μ 0.62–2 for the truth 0.4
-(issue 18, docs/diagnosis.md).  Damped, the canonical drop's rebound converges to the referee's (0.1607 / 0.1627 m at 512 / 2048 anchors
-against 0.1598 m; undamped 0.1709 m at both); at 192 anchors the bottom layer's normal energy is lost at the
-impact (0.1480 m).  MPM: 0 — its particles are a few mm apart and its friction acts on the grid nodes,
+(issue 18, docs/diagnosis.md).  Damped, the canonical drop's rebound converges to the referee's (springs only:
+0.1607 / 0.1627 m at 512 / 2048 anchors against 0.1598 m, undamped 0.1709 m at both; with the volumetric term
+0.1562 / 0.1588 / 0.1593 m at 512 / 2048 / 8192 against the symmetric referee's 0.1600 m, docs/spring_mass.md);
+at 192 anchors the bottom layer's normal energy is lost at the impact (0.1480 m, springs only).  MPM: 0 — its particles are a few mm apart and its friction acts on the grid nodes,
 where the impulse of a stick-slip impact already matched the referee's (0.78 of the 1 m/s, 12 and 16 cells)."""
 
 RIGID_GROUND_STIFFNESS = 1.0e30
