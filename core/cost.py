@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..solvers.materials import elastic_p_wave_per_e
 from ..solvers.registry import SOLVERS
 from .errors import UserError
 
@@ -37,7 +38,7 @@ ALLOW_LONG_FLAG = "--allow-long"
 def wave_speed(E: float, nu: float, density: float) -> float:
     """P-wave speed (m/s) ``sqrt((λ + 2μ)/ρ)`` of an isotropic solid (E Pa, ν, ρ kg/m³)."""
     nu = min(max(float(nu), -0.999), 0.499)  # an estimate: impossible ν are refused by the material's own check
-    factor = (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    factor = float(elastic_p_wave_per_e(nu))
     return math.sqrt(max(float(E), 0.0) * factor / max(float(density), 1e-12))
 
 

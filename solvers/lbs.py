@@ -407,6 +407,7 @@ class LBSSimulation(Simulation):
         newton_total = 0
         halvings = 0
         unconverged = 0
+        hconst_dt, Hconst = None, None
         extent = self.extent
         tolerance = st.newton_tolerance * extent
         clock.add("set_up", time.perf_counter() - t_begin)
@@ -419,10 +420,12 @@ class LBSSimulation(Simulation):
             dt_floor = dt_next / 2 ** MAX_STEP_HALVINGS * (1 + 1e-9)
             while t_left > 1e-9 * interval:
                 dt = min(dt_next, t_left)
-                elastic.set_viscosity(eta / dt)
-                Hconst = M[None] * (w_inertia / dt ** 2 + lin_drag / dt)[:, None, None]     # (E, nA, nA)
-                if clamp:
-                    Hconst = Hconst + kp * Mpin[None]
+                if dt != hconst_dt:  # the step length changes at a halving and a frame's last piece only
+                    elastic.set_viscosity(eta / dt)
+                    Hconst = M[None] * (w_inertia / dt ** 2 + lin_drag / dt)[:, None, None]     # (E, nA, nA)
+                    if clamp:
+                        Hconst = Hconst + kp * Mpin[None]
+                    hconst_dt = dt
                 t0 = time.perf_counter()
                 Zn = Z
                 Z_hat = Zn + dt * V + ((0.5 - nm_beta) * dt * dt) * Acc if newmark else Zn + dt * V

@@ -147,13 +147,23 @@ def blender_enum_items() -> list[tuple[str, str, str]]:
     return [(c.name, c.label, c.description) for c in _CLASSES if c.simulated]
 
 
+def elastic_p_wave_per_e(nu):
+    """P-wave modulus per unit E of an isotropic elastic solid, (λ + 2μ)/E = (1−ν)/((1+ν)(1−2ν)) (``nu``: Poisson's
+    ratio, a number or array-like; returns float64 of its shape)."""
+    import numpy as np
+
+    nu = np.asarray(nu, np.float64)
+    return (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+
 def p_wave_factor(nu, material_ids):
-    """Modulus that sets the solver's wave speed, per unit E: (1−ν)/((1+ν)(1−2ν)) (P-wave), or
-    1/(3(1−2ν)) (bulk) for weakly compressible classes (``nu``: Poisson's ratio, ``material_ids``: class ids;
-    array-likes whose shapes broadcast; returns a float64 array).  The wave speed is sqrt(E · factor / ρ)."""
+    """Modulus that sets the solver's wave speed, per unit E: (1−ν)/((1+ν)(1−2ν)) (P-wave,
+    :func:`elastic_p_wave_per_e`), or 1/(3(1−2ν)) (bulk) for weakly compressible classes (``nu``: Poisson's ratio,
+    ``material_ids``: class ids; array-likes whose shapes broadcast; returns a float64 array).  The wave speed is
+    sqrt(E · factor / ρ)."""
     import numpy as np
 
     nu = np.asarray(nu, np.float64)
     weak = np.array([c.elasticity == "weakly_compressible" for c in MATERIAL_CLASSES])[
         np.asarray(material_ids, np.int64)]
-    return np.where(weak, 1.0 / (3.0 * (1.0 - 2.0 * nu)), (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu)))
+    return np.where(weak, 1.0 / (3.0 * (1.0 - 2.0 * nu)), elastic_p_wave_per_e(nu))

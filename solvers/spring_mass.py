@@ -231,7 +231,7 @@ class SpringMassSimulation(Simulation):
         # term; the star rotations are the polar parts, which a positive scale leaves alone)
         rest_J = np.linalg.det(rest_F @ self._gram_inv)
         self._gram_inv *= np.where(rest_J > 1e-12, np.abs(rest_J), 1.0)[:, None, None] ** (-1.0 / 3.0)
-        self._vol_bound = self._volume_bound_weights(d0)
+        self._vol_bound = self._volume_bound_weights()
         # binding of tracked points
         from scipy.spatial import cKDTree
 
@@ -278,17 +278,24 @@ class SpringMassSimulation(Simulation):
         kf = k_anchor * self.spring_factor
         return 0.5 * (kf[s[:, 0]] + kf[s[:, 1]]) * self.spring_weight / self.network.rest_length
 
-    def _volume_bound_weights(self, d0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Weights of the volumetric term's bound on ω² (:meth:`stable_substep`): (H,) per half-edge and (N,) per
-        anchor, 1/m².  Linearised, star k's energy is ½ s_k (b_k·u)² with b_k's block g_h = G_k⁻¹ d0_h on
-        neighbour j_h and c_k = −Σ_h g_h on the anchor itself (1/m); Cauchy–Schwarz with weights ‖b_ka‖ gives
-        uᵀK u ≤ Σ_a ‖u_a‖² Σ_{k∋a} s_k ‖b_ka‖ S_k, S_k = Σ_a ‖b_ka‖ — a per-anchor bound like the springs'
-        Gershgorin one, so the two add."""
-        n = self.network.count
+    def star_volume_gradients(self) -> tuple[np.ndarray, np.ndarray]:
+        """The linearised volume change of every anchor star, J_k − 1 ≈ b_k·u: b_k's block g_h = G_k⁻¹ d0_h (H, 3) on
+        half-edge h's neighbour j_h, and c_k = −Σ_h g_h (N, 3) on the anchor k itself; 1/m."""
+        net = self.network
+        d0 = net.anchors[self._he_dst] - net.anchors[self._he_src]
         g = np.einsum("hij,hj->hi", self._gram_inv[self._he_src], d0)
-        gn = np.linalg.norm(g, axis=1)
-        c = np.zeros((n, 3))
+        c = np.zeros((net.count, 3))
         np.add.at(c, self._he_src, -g)
+        return g, c
+
+    def _volume_bound_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Weights of the volumetric term's bound on ω² (:meth:`stable_substep`): (H,) per half-edge and (N,) per
+        anchor, 1/m².  Linearised, star k's energy is ½ s_k (b_k·u)² (:meth:`star_volume_gradients`);
+        Cauchy–Schwarz with weights ‖b_ka‖ gives uᵀK u ≤ Σ_a ‖u_a‖² Σ_{k∋a} s_k ‖b_ka‖ S_k, S_k = Σ_a ‖b_ka‖ — a
+        per-anchor bound like the springs' Gershgorin one, so the two add."""
+        n = self.network.count
+        g, c = self.star_volume_gradients()
+        gn = np.linalg.norm(g, axis=1)
         cn = np.linalg.norm(c, axis=1)
         S = np.bincount(self._he_src, gn, n) + cn
         return gn * S[self._he_src], cn * S

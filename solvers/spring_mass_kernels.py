@@ -66,23 +66,20 @@ def spring_force_sum(e: int, i: int, first: int, stride: int, xi: wp.vec3, vi: w
     gradient of the anchor's own star energy and of every star it belongs to (the half-edges are symmetric: j is in
     i's star exactly when i is in j's)."""
     f = wp.vec3(0.0, 0.0, 0.0)
+    d0_sum = wp.vec3(0.0, 0.0, 0.0)
+    Xi = x_rest[i]
     h = start[i] + first
     stop = start[i + 1]
-    if has_volume != 0:
-        Xi = x_rest[i]
-        d0_sum = wp.vec3(0.0, 0.0, 0.0)
-        while h < stop:
-            f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+    while h < stop:
+        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+        if has_volume != 0:
             j = nbr[h]
             d0 = x_rest[j] - Xi
             f = f + stress[e, j] * d0
             d0_sum = d0_sum + d0
-            h += stride
+        h += stride
+    if has_volume != 0:
         f = f + stress[e, i] * d0_sum
-    else:
-        while h < stop:
-            f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
-            h += stride
     return f
 
 

@@ -28,13 +28,9 @@ def volume_gradient_matrix(sim):
     gradient, as the solver's star_stress): g_h = G_k⁻¹ d0_h on neighbour j_h, −Σ_h g_h on k itself."""
     import scipy.sparse as sp
 
-    net = sim.network
-    n = net.count
+    n = sim.network.count
     src, dst = sim._he_src, sim._he_dst
-    d0 = net.anchors[dst] - net.anchors[src]
-    g = np.einsum("hij,hj->hi", sim._gram_inv[src], d0)
-    own = np.zeros((n, 3))
-    np.add.at(own, src, -g)
+    g, own = sim.star_volume_gradients()
     comp = np.arange(3)
     rows = np.concatenate([np.repeat(src, 3), np.repeat(np.arange(n), 3)])
     cols = np.concatenate([(3 * dst[:, None] + comp).ravel(), (3 * np.arange(n)[:, None] + comp).ravel()])

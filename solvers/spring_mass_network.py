@@ -366,5 +366,5 @@ def poisson_split(nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def p_wave_per_e(nu: np.ndarray) -> np.ndarray:
     """(N,) M / E = (1 − ν) / ((1 + ν)(1 − 2ν)), the P-wave modulus per unit E of the network at the ν (N,) it
     realises (clipped as in :func:`poisson_split`)."""
-    v = np.clip(np.asarray(nu, np.float64), NETWORK_POISSON_RATIO, MAX_NETWORK_POISSON_RATIO)
-    return (1.0 - v) / ((1.0 + v) * (1.0 - 2.0 * v))
+    return materials_mod.elastic_p_wave_per_e(np.clip(np.asarray(nu, np.float64), NETWORK_POISSON_RATIO,
+                                                      MAX_NETWORK_POISSON_RATIO))
