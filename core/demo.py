@@ -126,6 +126,9 @@ class BakeSummary:
     simulate_seconds: float
     max_displacement: float
     settings: dict = field(default_factory=dict)
+    solver_steps: dict = field(default_factory=dict)
+    """What the solver reported about its stepping (``substeps``, ``substep_s``, ``step_bound``, ``anchors``, where
+    it says), from the trajectory's meta."""
 
 
 @dataclass
@@ -409,8 +412,11 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
                 say(f"         {obj.name}: {solver} bake FAILED: {rep}")
                 return
             moved = _max_displacement(obj, plan.frames)
+            meta = getattr(rep.trajectory, "meta", None) or {}
+            steps = {k: meta[k] for k in ("substeps", "substep_s", "step_bound", "anchors")
+                     if k in meta and (meta[k] is None or np.isscalar(meta[k]))}
             bakes.append(BakeSummary(obj.name, solver, alpha, rep.material, rep.mode, round(rep.simulate_seconds, 2),
-                                     moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}))
+                                     moved, {k: v for k, v in solver_settings.items() if np.isscalar(v)}, steps))
             say(f"         {obj.name}: {rep.mode.replace('_', ' ')}, simulated in {rep.simulate_seconds:.1f} s, "
                 f"moved up to {100 * moved:.1f} cm")
 

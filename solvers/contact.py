@@ -63,6 +63,16 @@ flat (μ 0.4, 1 m/s, 0.05 m) was 13–16 % below the referee's, and the diagnosi
 at 192 anchors the bottom layer's normal energy is lost at the impact (0.1480 m, springs only).  MPM: 0 — its particles are a few mm apart and its friction acts on the grid nodes,
 where the impulse of a stick-slip impact already matched the referee's (0.78 of the 1 m/s, 12 and 16 cells)."""
 
+SAMPLE_CONTACT_IMPLICIT = {"mpm": 0, "spring_mass": 1}
+"""Whether each contact sample takes the ground's normal spring and damper implicitly (1: at the end of the step,
+:func:`.contact_kernels.ground_contact_impulse`), per solver using that function.
+
+Spring-mass: 1.  Its substep comes from the network's highest frequency at rest (``step_bound`` "spectral",
+:mod:`.spring_mass`), 2.2–2.4 times the per-anchor bound it had; at that step an anchor's floor spring k_r (β = 2)
+has ω Δt ≈ 2.5 and its critical damper 2 ω Δt ≈ 5, so explicitly they would be capped at ω Δt = 1 and c = m/Δt — a
+floor 2.5 times softer in frequency (β ≈ 0.8, where the canonical drop rebounds higher) that changes with the
+step.  Implicit, the floor keeps k_r at any step.  MPM: 0 (its figures were measured with the explicit law)."""
+
 RIGID_GROUND_STIFFNESS = 1.0e30
 """Pa/m: a ground stiffness k_g at or above this is the rigid floor (the solvers' kernels carry k_g = ∞ as this)."""
 

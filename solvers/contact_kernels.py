@@ -34,7 +34,7 @@ def rigid_contact_stiffness(beta2: float, p_wave_modulus: float, area: float, si
 @wp.func
 def ground_contact_impulse(z_low: float, v: wp.vec3, m: float, area: float, size: float, rigid_k: float,
                            rigid_c: float, sample_zeta: float, dt: float, ground: float, stiffness: float,
-                           damping: float, mu: float):
+                           damping: float, mu: float, implicit: int):
     """Impulse (N·s, world frame) of the ground on one contact sample over a step of dt seconds.
 
     z_low: height (m) of the sample's lowest point at the start of the step; v: its velocity (m/s);
@@ -53,19 +53,31 @@ def ground_contact_impulse(z_low: float, v: wp.vec3, m: float, area: float, size
     samples then feels k A d and c A ḋ once, as the solid's surface does, not once per submerged layer (the
     independent referee's soft-floor drop, docs/contact.md).  Contacts shallower than ℓ are unaffected.  Tangential: Coulomb, at most μ times the normal impulse and never more than
     stops the sample's sliding.
+
+    implicit (:data:`.contact.SAMPLE_CONTACT_IMPLICIT`): 0 as above; 1 the spring and damper act on the sample's
+    depth and normal speed at the end of the step (backward Euler, solved in closed form: the sample's own normal
+    motion is one degree of freedom), so neither needs the caps m (MAX_RATE/Δt)² and m/Δt — stable at any Δt, and
+    the floor stays as stiff as k_r when the solver's substep is long.
     """
     d = ground - z_low
     if d <= 0.0:
         return wp.vec3(0.0)
     rate = MAX_RATE / dt
-    k = wp.min(wp.min(stiffness * area, rigid_k), m * rate * rate)
+    k = wp.min(stiffness * area, rigid_k)
+    if implicit == 0:
+        k = wp.min(k, m * rate * rate)
     c = float(0.0)
     if d <= size:
         c = damping * area + rigid_c * k / rigid_k
         if stiffness >= RIGID_K:
             c = c + 2.0 * sample_zeta * wp.sqrt(k * m)
-        c = wp.min(c, m / dt)
+        if implicit == 0:
+            c = wp.min(c, m / dt)
     fn = k * wp.min(d, size) - c * v[2]
+    if implicit != 0 and d <= size:
+        # v' = v + Δt fn'/m with fn' = k (d − Δt v') − c v'
+        v_end = (v[2] + dt * k * d / m) / (1.0 + dt * (c + dt * k) / m)
+        fn = m * (v_end - v[2]) / dt
     if fn <= 0.0:
         return wp.vec3(0.0)
     jn = fn * dt

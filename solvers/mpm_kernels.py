@@ -36,7 +36,7 @@ import warp as wp
 
 from .constitutive import (LAW_WEAKLY_COMPRESSIBLE, PLASTIC_SNOW, ClassLaw, constitutive_update,
                            elastic_fixed_corotated)
-from .contact import RIGID_CONTACT_BETA, RIGID_SAMPLE_DAMPING_RATIO
+from .contact import RIGID_CONTACT_BETA, RIGID_SAMPLE_DAMPING_RATIO, SAMPLE_CONTACT_IMPLICIT
 from .contact_kernels import ground_contact_impulse, rigid_contact_stiffness, rigid_floor
 
 wp.set_module_options({"enable_backward": False})
@@ -59,6 +59,8 @@ TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
 """Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
 RIGID_BETA2 = wp.constant(RIGID_CONTACT_BETA["mpm"] ** 2)
 """β² of MPM's rigid floor (:data:`.contact.RIGID_CONTACT_BETA`)."""
+SAMPLE_IMPLICIT = wp.constant(SAMPLE_CONTACT_IMPLICIT["mpm"])
+"""Whether MPM's particles take the ground's impulse implicitly (:data:`.contact.SAMPLE_CONTACT_IMPLICIT`)."""
 SAMPLE_ZETA = wp.constant(RIGID_SAMPLE_DAMPING_RATIO["mpm"])
 """Damping ratio of a particle's own contact spring on MPM's rigid floor
 (:data:`.contact.RIGID_SAMPLE_DAMPING_RATIO`)."""
@@ -105,7 +107,8 @@ def particle_ground_impulse(xp: wp.vec3, vp: wp.vec3, m: float, p_wave_modulus: 
     g = env_ground[env]
     rigid_k = rigid_contact_stiffness(RIGID_BETA2, p_wave_modulus, contact_area, 2.0 * contact_radius)
     return ground_contact_impulse(xp[2] - contact_radius, vp, m, contact_area, 2.0 * contact_radius, rigid_k,
-                                  2.0 * eta * rigid_k / p_wave_modulus, SAMPLE_ZETA, dt, ground_z, g[0], g[1], 0.0)
+                                  2.0 * eta * rigid_k / p_wave_modulus, SAMPLE_ZETA, dt, ground_z, g[0], g[1], 0.0,
+                                  SAMPLE_IMPLICIT)
 
 
 # ------------------------------------------------------------------------------ substep kernels

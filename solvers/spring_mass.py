@@ -232,6 +232,7 @@ class SpringMassSimulation(Simulation):
         rest_J = np.linalg.det(rest_F @ self._gram_inv)
         self._gram_inv *= np.where(rest_J > 1e-12, np.abs(rest_J), 1.0)[:, None, None] ** (-1.0 / 3.0)
         self._vol_bound = self._volume_bound_weights()
+        self._spectral_cache: dict[str, float | None] = {}
         # binding of tracked points
         from scipy.spatial import cKDTree
 
@@ -340,9 +341,83 @@ class SpringMassSimulation(Simulation):
         return {"kappa": kappa_s[he], "dashpot": damp_s[he], "yield_strain": np.minimum(ey, BIG)[he], "kappa_s": kappa_s,
                 "dashpot_s": damp_s, "vol_stiffness": self.volume_unit * E_eff}
 
-    def stable_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray, vol_stiffness: np.ndarray | None = None) -> float:
+    def stable_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray, vol_stiffness: np.ndarray | None = None,
+                       bound: str | None = None) -> float:
         """Largest stable substep (s) for spring constants (S,) N/m, dashpots (S,) N·s/m and the volumetric term's
-        star stiffnesses (N,) J (None: none), times ``safety``."""
+        star stiffnesses (N,) J (None: none), times ``safety``: dt = safety · 4 / (γ + sqrt(γ² + 4 ω²)).
+
+        bound: how ω² and γ are bounded (None: ``settings.step_bound``) — ``"spectral"``, the largest eigenvalues of
+        M⁻¹K and M⁻¹C of the network at rest (:meth:`spectral_rates`; for constants that are a non-uniform multiple of
+        the base ones, the largest multiple times the base eigenvalue, which bounds it); ``"gershgorin"``, the
+        per-anchor row sums (2–3 times shorter)."""
+        if (bound or self.settings.step_bound) == "spectral":
+            rates = self._spectral_bounds(kappa_s, dashpot_s, vol_stiffness)
+            if rates is not None:
+                omega2, gamma = rates
+                if omega2 <= 0 and gamma <= 0:
+                    return math.inf
+                return self.settings.safety * 4.0 / (gamma + math.sqrt(gamma * gamma + 4.0 * omega2))
+        return self._gershgorin_substep(kappa_s, dashpot_s, vol_stiffness)
+
+    def spectral_rates(self, kind: str) -> float | None:
+        """The network's largest rate at rest for its base constants (cached; None when ARPACK did not converge):
+        ``"stiffness"`` ω²_max (1/s²) of the springs and the volumetric term, ``"springs"`` of the springs alone,
+        ``"dashpots"`` γ_max (1/s) of the dashpots per Pa·s of ``material_damping``
+        (:func:`.spring_mass_linear.largest_rate_squared`)."""
+        if kind not in self._spectral_cache:
+            from scipy.sparse.linalg import ArpackNoConvergence
+
+            from . import spring_mass_linear as linear
+
+            zero = np.zeros(self.network.count)
+            constants = {"stiffness": (self.spring_kappa, None), "springs": (self.spring_kappa, zero),
+                         "dashpots": (self._base_dashpots(), zero)}[kind]
+            try:
+                self._spectral_cache[kind] = linear.largest_rate_squared(self, linear.stiffness_matrix(self, *constants))
+            except ArpackNoConvergence:
+                self._spectral_cache[kind] = None
+                self.warnings.append("the spring-mass network's highest frequency could not be computed (ARPACK did "
+                                     "not converge): the substep comes from the per-anchor (Gershgorin) bound")
+        return self._spectral_cache[kind]
+
+    def _base_dashpots(self) -> np.ndarray:
+        """(S,) N·s/m per Pa·s: the dashpots' constants at ``material_damping`` η = 1 (as :meth:`env_arrays`)."""
+        s = self.network.springs
+        return 0.5 * (self.dashpot_unit[s[:, 0]] + self.dashpot_unit[s[:, 1]]) / self.network.rest_length
+
+    def _spectral_bounds(self, kappa_s, dashpot_s, vol_stiffness) -> tuple[float, float] | None:
+        """(ω² 1/s², γ 1/s) bounding the network's rates for these constants, or None (use the Gershgorin bound).
+        Each spring's and star's constant is at most r times its base one (r the largest such multiple), so
+        K ≤ r K_base in the Loewner order (every spring's and star's rest stiffness is positive semi-definite)
+        and ω²_max ≤ r ω²_max,base — exact for a uniform multiple (an E scale, a stiffer fit); likewise γ."""
+
+        def multiple(values, base):
+            values = np.asarray(values, np.float64)
+            pos = base > 0
+            if np.any(values[~pos] > 0):
+                return None  # a constant with no base one: no bound from it
+            return float(np.max(values[pos] / base[pos], initial=0.0))
+
+        if vol_stiffness is None or not np.any(np.asarray(vol_stiffness) > 0):
+            kind, r = "springs", multiple(kappa_s, self.spring_kappa)
+        else:
+            kind = "stiffness"
+            r_k, r_v = multiple(kappa_s, self.spring_kappa), multiple(vol_stiffness, self.volume_unit * self.youngs_modulus)
+            r = None if r_k is None or r_v is None else max(r_k, r_v)
+        base = self.spectral_rates(kind) if r is not None and r > 0 else 0.0
+        if base is None or r is None:
+            return None
+        gamma = 0.0
+        if np.any(np.asarray(dashpot_s) > 0):
+            r_c = multiple(dashpot_s, self._base_dashpots())
+            g_base = self.spectral_rates("dashpots") if r_c is not None else None
+            if g_base is None:
+                return None
+            gamma = r_c * g_base
+        return r * base, gamma
+
+    def _gershgorin_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray, vol_stiffness: np.ndarray | None) -> float:
+        """:meth:`stable_substep` from per-anchor row sums: ω² = max_i (2 Σ_s κ_s + r_i) / m_i, γ = max_i 2 Σ_s c_s / m_i."""
         net = self.network
         n = net.count
         s = net.springs
@@ -394,6 +469,25 @@ class SpringMassSimulation(Simulation):
     # -------------------------------------------------------------------------------- running
     def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Progress | None,
                    particle_states: bool) -> list[Trajectory]:
+        """Run the environments at the substep of ``settings.step_bound``; a run that diverges at the spectral bound
+        (a deformation stiffer than the network at rest by more than the safety factor leaves room for) is run
+        again, whole, at the per-anchor (Gershgorin) bound, and says so in its warnings."""
+        try:
+            return self._run_terms_at(terms_list, progress=progress, particle_states=particle_states,
+                                      bound=self.settings.step_bound)
+        except SimulationDiverged:
+            if self.settings.step_bound != "spectral" or self.settings.substeps is not None:
+                raise
+        note = ("the spring-mass run diverged at the substep of the network's highest frequency at rest and was run "
+                "again at the shorter per-anchor (Gershgorin) bound")
+        self.warnings.append(note)
+        try:
+            return self._run_terms_at(terms_list, progress=progress, particle_states=particle_states, bound="gershgorin")
+        finally:
+            self.warnings.remove(note)
+
+    def _run_terms_at(self, terms_list: list[PhysicsTerms], *, progress: Progress | None, particle_states: bool,
+                      bound: str) -> list[Trajectory]:
         wp = self._wp
         from . import spring_mass_kernels as K
 
@@ -406,7 +500,7 @@ class SpringMassSimulation(Simulation):
         T = len(self.frame_times)
         P = len(self.tracked_rest)
         envs = [self.env_arrays(t) for t in terms_list]
-        dt_max = min(self.stable_substep(e["kappa_s"], e["dashpot_s"], e["vol_stiffness"]) for e in envs)
+        dt_max = min(self.stable_substep(e["kappa_s"], e["dashpot_s"], e["vol_stiffness"], bound) for e in envs)
         stack = lambda key: np.stack([e[key] for e in envs]).astype(np.float32)  # noqa: E731
         d_kappa = wp.array(stack("kappa"), dtype=wp.float32, device=dev)
         d_dash = wp.array(stack("dashpot"), dtype=wp.float32, device=dev)
@@ -546,8 +640,9 @@ class SpringMassSimulation(Simulation):
             if np.any(bad):
                 f = int(np.argmax(bad))
                 raise SimulationDiverged(f"the spring-mass simulation diverged at frame {f} (t = {self.frame_times[f]:.4g} s); "
-                                         "lower settings.safety or set more substeps")
+                                         "lower settings.safety, set more substeps or step_bound 'gershgorin'")
             meta = {"substep_s": float(dt_max) if math.isfinite(dt_max) else None, "substeps": total_substeps,
+                    "step_bound": bound if self.settings.substeps is None else "fixed",
                     "anchors": n, "springs": int(len(net.springs)), "softness": self.softness,
                     "device": dev, "wall_s": wall, "warnings": list(self.warnings)}
             traj = Trajectory(self.frame_times, pos, solver=self.solver, meta=meta)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .contact import RIGID_SAMPLE_DAMPING_RATIO
+from .contact import RIGID_SAMPLE_DAMPING_RATIO, SAMPLE_CONTACT_IMPLICIT
 from .contact_kernels import ground_contact_impulse
 
 # forward kernels only: nothing differentiates through them (no wp.Tape); the adjoints cost most of the
@@ -22,6 +22,8 @@ wp.set_module_options({"enable_backward": False})
 
 BIG = 1.0e30
 """Yield strain meaning "never yields"."""
+SAMPLE_IMPLICIT = wp.constant(SAMPLE_CONTACT_IMPLICIT["spring_mass"])
+"""Whether an anchor takes the ground's impulse implicitly (:data:`.contact.SAMPLE_CONTACT_IMPLICIT`)."""
 SAMPLE_ZETA = wp.constant(RIGID_SAMPLE_DAMPING_RATIO["spring_mass"])
 """Damping ratio of an anchor's own contact spring on the rigid floor (:data:`.contact.RIGID_SAMPLE_DAMPING_RATIO`)."""
 
@@ -160,7 +162,7 @@ def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: f
         size = wp.sqrt(contact_area[i])  # an anchor's cell is a cube of its volume: area ℓ², thickness ℓ
         vn = vn + im * ground_contact_impulse(xi[2] - contact_low[e, i], vn, 1.0 / im, contact_area[i], size,
                                               rigid_k[e, i], rigid_c[e, i], SAMPLE_ZETA, dt, ground, g[0], g[1],
-                                              g[2])
+                                              g[2], SAMPLE_IMPLICIT)
     x_out[e, i] = xi + dt * vn
     v_out[e, i] = vn
 

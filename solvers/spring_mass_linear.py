@@ -37,18 +37,22 @@ def volume_gradient_matrix(sim):
     return sp.csr_matrix((np.concatenate([g.ravel(), own.ravel()]), (rows, cols)), shape=(n, 3 * n))
 
 
-def stiffness_matrix(sim):
-    """(3N, 3N) scipy CSR, N/m: the linearised stiffness of ``sim``'s springs (:class:`.spring_mass.SpringMassSimulation`,
-    its base spring constants ``spring_kappa``, no effects) and volumetric term (star stiffnesses
-    ``volume_unit · youngs_modulus``, J) at rest.  Row 3i + c is anchor i's force component c."""
+def stiffness_matrix(sim, spring_constants=None, star_stiffness=None):
+    """(3N, 3N) scipy CSR, N/m: the linearised stiffness of ``sim``'s springs (:class:`.spring_mass.SpringMassSimulation`)
+    and volumetric term at rest.  Row 3i + c is anchor i's force component c.
+
+    spring_constants: (S,) N/m (None: the base ``spring_kappa``, no effects); star_stiffness: (N,) J, the volumetric
+    term's s_k (None: ``volume_unit · youngs_modulus``).  With the dashpots' constants (N·s/m) and zero star
+    stiffness the same assembly is the dashpots' damping matrix."""
     import scipy.sparse as sp
 
     net = sim.network
     n = net.count
     s = net.springs
+    kappa = sim.spring_kappa if spring_constants is None else np.asarray(spring_constants, np.float64)
     d = net.anchors[s[:, 1]] - net.anchors[s[:, 0]]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    block = sim.spring_kappa[:, None, None] * d[:, :, None] * d[:, None, :]  # (S, 3, 3)
+    block = kappa[:, None, None] * d[:, :, None] * d[:, None, :]  # (S, 3, 3)
     rows, cols, vals = [], [], []
     comp = np.arange(3)
     for a, b, sign in ((0, 0, 1.0), (1, 1, 1.0), (0, 1, -1.0), (1, 0, -1.0)):
@@ -58,11 +62,34 @@ def stiffness_matrix(sim):
         cols.append(np.broadcast_to(c, block.shape).ravel())
         vals.append((sign * block).ravel())
     K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
-    vol = sim.volume_unit * sim.youngs_modulus
+    vol = sim.volume_unit * sim.youngs_modulus if star_stiffness is None else np.asarray(star_stiffness, np.float64)
     if np.any(vol > 0):
         B = volume_gradient_matrix(sim)
         K = (K + B.T @ sp.diags(vol) @ B).tocsr()
     return K
+
+
+def largest_rate_squared(sim, matrix) -> float:
+    """1/s²: the largest eigenvalue of M⁻¹ ``matrix`` over the free (unpinned) anchors' coordinates — for the stiffness
+    matrix (:func:`stiffness_matrix`) the square of the network's highest angular frequency ω_max at rest, for the
+    dashpots' damping matrix its largest decay rate γ_max (1/s, not squared).  Lanczos (ARPACK) on the symmetric
+    M^(−1/2) K M^(−1/2); 0 when every anchor is pinned or the matrix is zero.  Raises scipy's ArpackNoConvergence when
+    the iteration does not converge."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    free = np.repeat(~sim.network.pinned, 3)
+    if not free.any():
+        return 0.0
+    scale = sp.diags(1.0 / np.sqrt(np.repeat(sim.network.mass, 3)[free]))
+    A = (scale @ matrix[free][:, free] @ scale).tocsr()
+    if A.nnz == 0 or not np.any(A.data):
+        return 0.0
+    if A.shape[0] <= 3:
+        return float(np.linalg.eigvalsh(A.toarray()).max())
+    # the start vector is fixed (ARPACK's default is random): the same network gives the same substep every run
+    start = np.cos(np.arange(A.shape[0]) * 0.7853981633974483 + 0.3) + 1.5
+    return float(sla.eigsh(A, k=1, which="LA", tol=1e-6, v0=start, return_eigenvectors=False)[0])
 
 
 def _free_dofs(sim) -> np.ndarray:

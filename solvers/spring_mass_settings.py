@@ -29,6 +29,12 @@ STIFFNESS_CALIBRATION = 0.94
 """c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
 
 
+STEP_BOUNDS = ("spectral", "gershgorin")
+"""How the substep's stability limit bounds the network's highest frequency: ``spectral``, its largest eigenvalue
+at rest (Lanczos, once per network); ``gershgorin``, per-anchor row sums (safe for any deformation, 2–3 times
+shorter)."""
+
+
 @dataclass
 class SpringMassSettings(SolverSettings):
     """Set-up options of the spring-mass solver.
@@ -50,6 +56,8 @@ class SpringMassSettings(SolverSettings):
     volumetric: the volumetric term per anchor that gives the network the material's Poisson ratio ν (springs
         rescaled to the material's shear modulus plus ½ λ_extra V (J − 1)² per anchor star, :mod:`.spring_mass`);
         False: springs only (ν = 1/4 whatever the material says; 1.6–1.8 times the substep rate on the CPU).
+    step_bound: ``"spectral"`` (default) or ``"gershgorin"``, how the stability limit bounds the network's highest
+        frequency (:data:`STEP_BOUNDS`, :meth:`.spring_mass.SpringMassSimulation.stable_substep`).
     lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
         1 on the CPU needs ``warp.config.enable_cpu_blocks``).  ``None``: :data:`.spring_mass.GPU_LANES_PER_ANCHOR` on a GPU,
         1 on the CPU.
@@ -71,8 +79,12 @@ class SpringMassSettings(SolverSettings):
     stiffness_calibration: float = STIFFNESS_CALIBRATION
     lanes_per_anchor: Optional[int] = None
     volumetric: bool = True
+    step_bound: str = "spectral"
 
     def __post_init__(self):
+        if self.step_bound not in STEP_BOUNDS:
+            raise UserError(f"spring-mass setting 'step_bound' must be one of {', '.join(STEP_BOUNDS)}, "
+                            f"got {self.step_bound!r}")
         if not isinstance(self.volumetric, (bool, np.bool_)):
             raise UserError(f"spring-mass setting 'volumetric' must be true or false, got {self.volumetric!r}")
         self.volumetric = bool(self.volumetric)

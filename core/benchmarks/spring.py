@@ -15,7 +15,9 @@ after one warm-up run):
 
 A timed run includes everything a diagnosis re-run pays: state upload, all substeps, the
 per-frame binding of the tracked points and reading them back.  ``substeps_per_s`` =
-substeps of the run / its wall time.
+substeps of the run / its wall time; every entry also records ``simulated_s_per_wall_s`` (simulated time / wall
+time: what a user waits, which a longer substep improves and ``substeps_per_s`` does not show) and the run's
+``step_bound``.
 """
 
 from __future__ import annotations
@@ -72,10 +74,12 @@ def run(args) -> list[dict]:
         entry = {"case": case, "device": described, "metric": metric, "value": value, "runs": args.runs,
                  "anchors": sim.network.count, "springs": int(len(sim.network.springs)),
                  "tracked_points": int(len(body.tracked_points)), "frames": len(frames), "substeps_per_run": subs,
-                 "environments": envs, "median_run_s": med, "substep_s": traj.meta["substep_s"]}
+                 "environments": envs, "median_run_s": med, "substep_s": traj.meta["substep_s"],
+                 "step_bound": traj.meta.get("step_bound"),
+                 "simulated_s_per_wall_s": float(frames[-1] - frames[0]) / med}
         results.append(entry)
-        print(f"  {case}: {value:.4g} {metric} (run {med:.3g} s, {subs} substeps, {sim.network.count} anchors)",
-              flush=True)
+        print(f"  {case}: {value:.4g} {metric} (run {med:.3g} s, {subs} substeps, {sim.network.count} anchors; "
+              f"{entry['simulated_s_per_wall_s']:.3g} simulated s per wall s)", flush=True)
 
     ico = sphere_mesh()
     frames = np.linspace(0.0, duration, 11)
