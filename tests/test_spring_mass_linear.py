@@ -19,10 +19,14 @@ FIDELITY = Path(__file__).resolve().parents[1] / "benchmarks" / "fidelity.json"
 
 
 def _recorded(scene: str, metric: str, resolution: str) -> float:
+    """The recorded time-stepped value; when several devices recorded the case (H100 and H200 entries side by side,
+    as the benchmark spec keeps them), they must agree to 0.1 % and their mean is returned."""
     rows = json.loads(FIDELITY.read_text())["results"]
-    (row,) = [r for r in rows if r.get("solver") == "spring_mass" and r.get("scene") == scene and r.get("metric") == metric
-              and r.get("resolution") == resolution]
-    return float(row["value"])
+    values = [float(r["value"]) for r in rows if r.get("solver") == "spring_mass" and r.get("scene") == scene
+              and r.get("metric") == metric and r.get("resolution") == resolution]
+    assert values, (scene, metric, resolution)
+    assert max(values) - min(values) <= 1e-3 * abs(np.mean(values)), values
+    return float(np.mean(values))
 
 
 @pytest.fixture(scope="module")
