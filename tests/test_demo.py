@@ -49,6 +49,10 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
     assert sorted(b["solver"] for b in bakes.values()) == ["lbs", "mpm", "mpm", "mpm", "spring_mass"]
     for b in bakes.values():
         assert b["max_displacement"] > demo.MOVE_THRESHOLD, f"{b['object']} did not move"
+    # each bake says how its solver stepped (spring-mass: from its network's highest frequency)
+    (spring,) = [b for b in bakes.values() if b["solver"] == "spring_mass"]
+    assert spring["solver_steps"]["step_bound"] == "spectral" and spring["solver_steps"]["substeps"] > 0
+    assert 0.0 < spring["solver_steps"]["substep_s"] < 1.0 / demo.QUICK.fps
     mpm = sorted((b for b in bakes.values() if b["solver"] == "mpm"), key=lambda b: b["alpha"])
     assert [b["alpha"] for b in mpm] == [0.0, 0.5, 1.0]
     assert "at α 0 " in mpm[0]["material"] and "at α 1 " in mpm[-1]["material"]
