@@ -73,11 +73,13 @@ def ground_contact_impulse(z_low: float, v: wp.vec3, m: float, area: float, size
             c = c + 2.0 * sample_zeta * wp.sqrt(k * m)
         if implicit == 0:
             c = wp.min(c, m / dt)
-    fn = k * wp.min(d, size) - c * v[2]
+    fn = float(0.0)
     if implicit != 0 and d <= size:
         # v' = v + Δt fn'/m with fn' = k (d − Δt v') − c v'
         v_end = (v[2] + dt * k * d / m) / (1.0 + dt * (c + dt * k) / m)
         fn = m * (v_end - v[2]) / dt
+    else:
+        fn = k * wp.min(d, size) - c * v[2]
     if fn <= 0.0:
         return wp.vec3(0.0)
     jn = fn * dt

@@ -142,9 +142,10 @@ class SpringMassSimulation(Simulation):
 
     Public attributes (numpy, SI): ``network`` (:class:`.spring_mass_network.AnchorNetwork`), ``stiffness`` (N,) N,
     ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
-    ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping``, ``youngs_modulus`` (N,) Pa the
-    stiffness stands for, ``poisson_ratio`` (N,) the ν each anchor realises, ``spring_factor`` (N,) and
-    ``volume_unit`` (N,) m³ (λ_extra V / E) of the volumetric term, ``inv_mass`` (N,) (0 = clamped),
+    ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping`` and ``spring_dashpot_unit`` (S,) N·s/m per Pa·s (the
+    dashpots at η = 1), ``youngs_modulus`` (N,) Pa the stiffness stands for, ``poisson_ratio`` (N,) the ν each
+    anchor realises, ``spring_factor`` (N,) and ``volume_unit`` (N,) m³ (λ_extra V / E) of the volumetric term,
+    ``star_stiffness`` (N,) J (its base star stiffnesses V λ_extra, no effects), ``inv_mass`` (N,) (0 = clamped),
     ``contact_offset`` m (anchors touch the ground this far above it).
     """
 
@@ -194,7 +195,10 @@ class SpringMassSimulation(Simulation):
         self.volume_unit = lam_per_E * net.volume
         sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
+        ends = net.springs
+        self.spring_dashpot_unit = 0.5 * (self.dashpot_unit[ends[:, 0]] + self.dashpot_unit[ends[:, 1]]) / net.rest_length
         self.spring_kappa = self._kappa(self.stiffness)
+        self.star_stiffness = self.volume_unit * self.youngs_modulus
         # class yield stress (von Mises classes): per anchor
         cls_yield = np.array([c.params.get("yield_stress", math.inf) if c.plasticity == "von_mises" else math.inf
                               for c in materials_mod.MATERIAL_CLASSES])
@@ -330,7 +334,7 @@ class SpringMassSimulation(Simulation):
         scale = terms.E_multiplier(net.count)
         kappa_s = self._kappa(self.stiffness * scale)
         s = net.springs
-        damp_s = terms.damping_eta * 0.5 * (self.dashpot_unit[s[:, 0]] + self.dashpot_unit[s[:, 1]]) / net.rest_length
+        damp_s = terms.damping_eta * self.spring_dashpot_unit
         E_eff = self.youngs_modulus * scale
         E_s = 0.5 * (E_eff[s[:, 0]] + E_eff[s[:, 1]])
         ys = np.minimum(np.minimum(self.class_yield[s[:, 0]], self.class_yield[s[:, 1]]), terms.yield_stress)
@@ -371,7 +375,7 @@ class SpringMassSimulation(Simulation):
 
             zero = np.zeros(self.network.count)
             constants = {"stiffness": (self.spring_kappa, None), "springs": (self.spring_kappa, zero),
-                         "dashpots": (self._base_dashpots(), zero)}[kind]
+                         "dashpots": (self.spring_dashpot_unit, zero)}[kind]
             try:
                 self._spectral_cache[kind] = linear.largest_rate_squared(self, linear.stiffness_matrix(self, *constants))
             except ArpackNoConvergence:
@@ -379,11 +383,6 @@ class SpringMassSimulation(Simulation):
                 self.warnings.append("the spring-mass network's highest frequency could not be computed (ARPACK did "
                                      "not converge): the substep comes from the per-anchor (Gershgorin) bound")
         return self._spectral_cache[kind]
-
-    def _base_dashpots(self) -> np.ndarray:
-        """(S,) N·s/m per Pa·s: the dashpots' constants at ``material_damping`` η = 1 (as :meth:`env_arrays`)."""
-        s = self.network.springs
-        return 0.5 * (self.dashpot_unit[s[:, 0]] + self.dashpot_unit[s[:, 1]]) / self.network.rest_length
 
     def _spectral_bounds(self, kappa_s, dashpot_s, vol_stiffness) -> tuple[float, float] | None:
         """(ω² 1/s², γ 1/s) bounding the network's rates for these constants, or None (use the Gershgorin bound).
@@ -402,14 +401,14 @@ class SpringMassSimulation(Simulation):
             kind, r = "springs", multiple(kappa_s, self.spring_kappa)
         else:
             kind = "stiffness"
-            r_k, r_v = multiple(kappa_s, self.spring_kappa), multiple(vol_stiffness, self.volume_unit * self.youngs_modulus)
+            r_k, r_v = multiple(kappa_s, self.spring_kappa), multiple(vol_stiffness, self.star_stiffness)
             r = None if r_k is None or r_v is None else max(r_k, r_v)
         base = self.spectral_rates(kind) if r is not None and r > 0 else 0.0
         if base is None or r is None:
             return None
         gamma = 0.0
         if np.any(np.asarray(dashpot_s) > 0):
-            r_c = multiple(dashpot_s, self._base_dashpots())
+            r_c = multiple(dashpot_s, self.spring_dashpot_unit)
             g_base = self.spectral_rates("dashpots") if r_c is not None else None
             if g_base is None:
                 return None
@@ -447,7 +446,7 @@ class SpringMassSimulation(Simulation):
         L = net.rest_length if rest_lengths is None else rest_lengths
         env = None if terms is None else self.env_arrays(terms)
         kappa = self.spring_kappa if env is None else env["kappa_s"]
-        vol = self.volume_unit * self.youngs_modulus if env is None else env["vol_stiffness"]
+        vol = self.star_stiffness if env is None else env["vol_stiffness"]
         l = np.linalg.norm(x[net.springs[:, 1]] - x[net.springs[:, 0]], axis=1)
         acc = self.scenario.gravity + (0 if terms is None else terms.extra_acceleration)
         kin = 0.5 * float(np.sum(net.mass * np.sum(v * v, axis=1)))
@@ -480,14 +479,12 @@ class SpringMassSimulation(Simulation):
                 raise
         note = ("the spring-mass run diverged at the substep of the network's highest frequency at rest and was run "
                 "again at the shorter per-anchor (Gershgorin) bound")
-        self.warnings.append(note)
-        try:
-            return self._run_terms_at(terms_list, progress=progress, particle_states=particle_states, bound="gershgorin")
-        finally:
-            self.warnings.remove(note)
+        return self._run_terms_at(terms_list, progress=progress, particle_states=particle_states, bound="gershgorin",
+                                  notes=(note,))
 
     def _run_terms_at(self, terms_list: list[PhysicsTerms], *, progress: Progress | None, particle_states: bool,
-                      bound: str) -> list[Trajectory]:
+                      bound: str, notes: tuple = ()) -> list[Trajectory]:
+        """One run of the environments at the substep of ``bound``; ``notes`` join this run's warnings only."""
         wp = self._wp
         from . import spring_mass_kernels as K
 
@@ -644,7 +641,7 @@ class SpringMassSimulation(Simulation):
             meta = {"substep_s": float(dt_max) if math.isfinite(dt_max) else None, "substeps": total_substeps,
                     "step_bound": bound if self.settings.substeps is None else "fixed",
                     "anchors": n, "springs": int(len(net.springs)), "softness": self.softness,
-                    "device": dev, "wall_s": wall, "warnings": list(self.warnings)}
+                    "device": dev, "wall_s": wall, "warnings": list(self.warnings) + list(notes)}
             traj = Trajectory(self.frame_times, pos, solver=self.solver, meta=meta)
             if particle_states:
                 traj.particle_positions = part_x[e]

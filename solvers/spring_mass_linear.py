@@ -42,7 +42,7 @@ def stiffness_matrix(sim, spring_constants=None, star_stiffness=None):
     and volumetric term at rest.  Row 3i + c is anchor i's force component c.
 
     spring_constants: (S,) N/m (None: the base ``spring_kappa``, no effects); star_stiffness: (N,) J, the volumetric
-    term's s_k (None: ``volume_unit · youngs_modulus``).  With the dashpots' constants (N·s/m) and zero star
+    term's s_k (None: the base ``star_stiffness``).  With the dashpots' constants (N·s/m) and zero star
     stiffness the same assembly is the dashpots' damping matrix."""
     import scipy.sparse as sp
 
@@ -62,7 +62,7 @@ def stiffness_matrix(sim, spring_constants=None, star_stiffness=None):
         cols.append(np.broadcast_to(c, block.shape).ravel())
         vals.append((sign * block).ravel())
     K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
-    vol = sim.volume_unit * sim.youngs_modulus if star_stiffness is None else np.asarray(star_stiffness, np.float64)
+    vol = sim.star_stiffness if star_stiffness is None else np.asarray(star_stiffness, np.float64)
     if np.any(vol > 0):
         B = volume_gradient_matrix(sim)
         K = (K + B.T @ sp.diags(vol) @ B).tocsr()
