@@ -135,13 +135,14 @@ def part_label_moments(semantic_class: str, variant: str, codes: dict, hidden: s
 
 
 def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, resolution: int, alphas,
-                       settings: OracleSettings | None = None) -> dict:
+                       settings: OracleSettings | None = None, codes: dict | None = None) -> dict:
     """Both references' predictions for one procedural object, in the evaluation's saved format.
 
     annotation: the object's stored :class:`~.annotation.Annotation`; part_ids: (K,) part of each occupied
     voxel (index into ``annotation.part_names``); indices: (K, 3) voxel indices; alphas: (A,) values.
     Returns {reference name: {"alphas" (A,), "log10_E" / "log10_density" / "nu" (A, K) float32,
-    "material" (A, K) int16, "runtime_s"}}.
+    "material" (A, K) int16, "runtime_s"}}.  codes: part -> appearance code used in place of the generator's
+    for those parts (a reader's estimate, :mod:`.part_code_probe`); None: the generator's own.
     """
     settings = settings or OracleSettings()
     part_ids = np.asarray(part_ids, np.int64)
@@ -151,7 +152,8 @@ def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, re
     if len(part_ids) and (part_ids.min() < 0 or part_ids.max() >= len(names)):
         raise UserError(f"part labels outside 0..{len(names) - 1} (the annotation has parts {', '.join(names)})")
     t0 = time.perf_counter()
-    semantic_class, variant, codes = generator_codes(annotation)
+    semantic_class, variant, true_codes = generator_codes(annotation)
+    codes = {**true_codes, **(codes or {})}
     seen = visible_parts(part_ids, indices, resolution)
     hidden = {n for i, n in enumerate(names) if i >= len(seen) or not seen[i]}
     rng = np.random.default_rng([int(settings.seed), int((annotation.meta or {}).get("index", 0))])
