@@ -135,7 +135,7 @@ class AnchorNetwork:
         spring joining a free anchor to a held one (:attr:`held`) takes the free end's at both.  A held class never
         deforms and its E is no material's (the stationary class's is a GPa prior): the spring stands for the free
         material bonded to a rigid support.  With the held end's own, the demo plant's soil anchors on its pot got
-        springs 10⁴–10⁵ times the median (½ k of a GPa, clamp-sized pot cell) and alone set the substep (7.5 µs,
+        springs up to 6·10⁴ times the median (½ k of a GPa, clamp-sized pot cell) and alone set the substep (7.5 µs,
         docs/spring_mass.md "Performance")."""
         ends = self.springs.copy()
         held, free = self.held, ~self.pinned
