@@ -19,6 +19,8 @@ The solid is a network of *anchors* (point masses) joined by springs:
   rest length L_s::
 
       κ_s = ½ (k_i + k_j) · w(rank_s; η) / L_s                      [N/m]
+      (k_i for both ends when j is a held anchor and i a free one — the free material bonded to a rigid support;
+       :meth:`.spring_mass_network.AnchorNetwork.material_ends`)
       w(r) = 1                                          for r < fixed_springs
       w(r) = clip(2 − b^((r − fixed)/(neighbours − fixed)), 0, 1),  b = exp(softplus(η))
 
@@ -74,7 +76,8 @@ E = S / (6V), S = Σ_s κ_s L_s².  Attributing to each anchor its springs' shar
 
     k_i = c_E · 12 E_i V_i / Σ_{s∋i} w_s L_s          (with κ_s as above)
 
-with E_i the volume mean of E over anchor i's cell.  Σ_{s∋i} w_s L_s assumes the anchor's springs spread evenly
+with E_i the volume mean of E over anchor i's cell (over its fill points of deforming classes where it has any: a
+held class's E is no material's).  Σ_{s∋i} w_s L_s assumes the anchor's springs spread evenly
 over all directions; in a thin part (a bar or a leaf a few anchors thick) they lie along the part, and the
 network is stiffer there (a 0.04 × 0.02 m bar 3 anchors thick stretched 10 % too little).  So the sum is
 replaced by the one that fits the anchor's affine stiffness tensor (∝ k_i Σ w L d⊗d⊗d⊗d) to the isotropic
@@ -141,7 +144,8 @@ class SpringMassSimulation(Simulation):
     """A prepared spring-mass simulation (see the module docstring).
 
     Public attributes (numpy, SI): ``network`` (:class:`.spring_mass_network.AnchorNetwork`), ``stiffness`` (N,) N,
-    ``softness`` η, ``spring_weight`` (S,), ``spring_kappa`` (S,) N/m (base, no effects),
+    ``softness`` η, ``spring_weight`` (S,), ``spring_ends`` (S, 2) the anchors each spring's stiffness, dashpot and
+    yield come from (:meth:`.spring_mass_network.AnchorNetwork.material_ends`), ``spring_kappa`` (S,) N/m (base, no effects),
     ``dashpot_unit`` (N,) N·s per Pa·s of ``material_damping`` and ``spring_dashpot_unit`` (S,) N·s/m per Pa·s (the
     dashpots at η = 1), ``youngs_modulus`` (N,) Pa the stiffness stands for, ``poisson_ratio`` (N,) the ν each
     anchor realises, ``spring_factor`` (N,) and ``volume_unit`` (N,) m³ (λ_extra V / E) of the volumetric term,
@@ -192,10 +196,13 @@ class SpringMassSimulation(Simulation):
                                      "change (a part one or two anchors thick): they run with springs only (Poisson "
                                      "ratio 1/4 there); more anchors resolve the part")
         self.spring_factor, lam_per_E = poisson_split(self.poisson_ratio)
-        self.volume_unit = lam_per_E * net.volume
+        # a held anchor's star has no volumetric stiffness: its class never deforms and its E is no material's (as its
+        # springs to free anchors, :meth:`.spring_mass_network.AnchorNetwork.material_ends`)
+        self.volume_unit = np.where(net.held, 0.0, lam_per_E * net.volume)
         sl = net.fabric_sums(np.ones(len(net.springs)))
         self.dashpot_unit = settings.stiffness_calibration * AFFINE_DASHPOT_FACTOR * net.volume / np.maximum(sl, 1e-300)
-        ends = net.springs
+        self.spring_ends = net.material_ends()
+        ends = self.spring_ends
         self.spring_dashpot_unit = 0.5 * (self.dashpot_unit[ends[:, 0]] + self.dashpot_unit[ends[:, 1]]) / net.rest_length
         self.spring_kappa = self._kappa(self.stiffness)
         self.star_stiffness = self.volume_unit * self.youngs_modulus
@@ -279,7 +286,7 @@ class SpringMassSimulation(Simulation):
     def _kappa(self, k_anchor: np.ndarray) -> np.ndarray:
         """(S,) N/m spring constants for per-anchor stiffness (N,) newtons (times each anchor's shear factor
         ``spring_factor``, :func:`.spring_mass_network.poisson_split`)."""
-        s = self.network.springs
+        s = self.spring_ends
         kf = k_anchor * self.spring_factor
         return 0.5 * (kf[s[:, 0]] + kf[s[:, 1]]) * self.spring_weight / self.network.rest_length
 
@@ -333,7 +340,7 @@ class SpringMassSimulation(Simulation):
         net = self.network
         scale = terms.E_multiplier(net.count)
         kappa_s = self._kappa(self.stiffness * scale)
-        s = net.springs
+        s = self.spring_ends
         damp_s = terms.damping_eta * self.spring_dashpot_unit
         E_eff = self.youngs_modulus * scale
         E_s = 0.5 * (E_eff[s[:, 0]] + E_eff[s[:, 1]])

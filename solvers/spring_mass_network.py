@@ -47,6 +47,10 @@ MAX_NETWORK_POISSON_RATIO = 0.45
 network's, the substep about 0.56 of it; at 0.49 it would be 0.26); a material above it runs at this ν."""
 
 
+_HELD_CLASS = np.array([materials_mod.get(int(c)).held_fixed for c in range(materials_mod.NUM_CLASSES)])
+"""(classes,) bool: the material registry's held-fixed classes, by class id."""
+
+
 def softness_weights(ranks: np.ndarray, neighbours: int, fixed_springs: int, softness: float) -> np.ndarray:
     """Strength factor w ∈ [0, 1] of springs of the given neighbour ranks (0 = nearest).
 
@@ -68,7 +72,8 @@ class AnchorNetwork:
 
     fill_points: (F, 3) m, samples of the solid; fill_volume: (F,) m³ each; fill_cell: (F,) anchor index.
     anchors: (N, 3) m rest positions in FPS order; volume: (N,) m³; mass: (N,) kg;
-    E: (N,) Pa (cell mean); nu: (N,) Poisson's ratio (cell mean); material: (N,) class ids;
+    E: (N,) Pa and nu: (N,) Poisson's ratio, cell means (over the fill points of deforming classes where the cell has
+    any); material: (N,) class ids;
     pinned: (N,) bool (clamp or stationary class).
     springs: (S, 2) anchor indices (i < j); rank: (S,) int; rest_length: (S,) m.
     """
@@ -119,6 +124,26 @@ class AnchorNetwork:
         np.add.at(gram, self.springs[:, 1], outer)
         ev = np.linalg.eigvalsh(gram)
         return ev[:, 0] / np.maximum(ev[:, 2], 1e-300)
+
+    @property
+    def held(self) -> np.ndarray:
+        """(N,) bool: anchors of a held-fixed class (stationary: a pot, a wall), pinned whatever the scenario."""
+        return _HELD_CLASS[self.material]
+
+    def material_ends(self) -> np.ndarray:
+        """(S, 2) the anchors whose stiffness, dashpot and yield each spring takes: its own two ends, except that a
+        spring joining a free anchor to a held one (:attr:`held`) takes the free end's at both.  A held class never
+        deforms and its E is no material's (the stationary class's is a GPa prior): the spring stands for the free
+        material bonded to a rigid support.  With the held end's own, the demo plant's soil anchors on its pot got
+        springs up to 6·10⁴ times the median (½ k of a GPa, clamp-sized pot cell) and alone set the substep (7.5 µs,
+        docs/spring_mass.md "Performance")."""
+        ends = self.springs.copy()
+        held, free = self.held, ~self.pinned
+        a_held = held[ends[:, 0]] & free[ends[:, 1]]
+        b_held = held[ends[:, 1]] & free[ends[:, 0]]
+        ends[a_held, 0] = ends[a_held, 1]
+        ends[b_held, 1] = ends[b_held, 0]
+        return ends
 
     def spring_sums(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per anchor Σ_{s∋i} w_s L_s and Σ_{s∋i} L_s, (N,) m each."""
@@ -266,7 +291,7 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
         warnings.append(f"{int((~keep).sum())} of {len(keep)} fill points are background material and carry no mass")
         fill, fvol = fill[keep], fvol[keep]
         mat = type(mat)(mat.E[keep], mat.nu[keep], mat.density[keep], mat.material[keep])
-    held = np.array([materials_mod.get(int(c)).held_fixed for c in range(materials_mod.NUM_CLASSES)])
+    held = _HELD_CLASS
     pinned_fill = held[mat.material]
     if scenario is not None:
         pinned_fill = pinned_fill | scenario.pinned_mask(fill)
@@ -283,8 +308,14 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     _, cell = tree.query(fill)
     volume = np.bincount(cell, fvol, n)
     mass = np.bincount(cell, fvol * mat.density, n)
-    E_cell = np.bincount(cell, fvol * mat.E, n) / np.maximum(volume, 1e-300)
-    nu_cell = np.bincount(cell, fvol * mat.nu, n) / np.maximum(volume, 1e-300)
+    # E and ν: means over the cell's fill points of the classes that deform, where it has any — a held class's E (the
+    # stationary pot's GPa prior) averaged into a soil anchor's cell made its springs the pot's
+    deforming = fvol * ~held[mat.material]
+    own = np.bincount(cell, deforming, n)
+    w = np.where(own[cell] > 0, deforming, fvol)
+    w_sum = np.bincount(cell, w, n)
+    E_cell = np.bincount(cell, w * mat.E, n) / np.maximum(w_sum, 1e-300)
+    nu_cell = np.bincount(cell, w * mat.nu, n) / np.maximum(w_sum, 1e-300)
     # an anchor whose cell is empty (cannot happen for anchors drawn from the fill points, kept safe)
     empty = volume <= 0
     if np.any(empty):

@@ -117,3 +117,38 @@ def test_a_run_that_diverges_at_the_spectral_step_is_run_again_at_the_gershgorin
     assert any("diverged" in w for w in traj.meta["warnings"])
     np.testing.assert_allclose(traj.positions, reference.positions, atol=1e-6)
     assert not any("diverged" in w for w in sim.warnings)  # the note belongs to that run only
+
+
+def potted_block(held_E: float, anchors: int = 150):
+    """A 0.2 m block: its lower half a held class (stationary, E ``held_E``) like the demo plant's pot, its upper half
+    jelly (200 kPa) clamped up to 2 cm above the interface like the plant's soil; gravity, no ground."""
+    from unipixie.solvers import materials
+    from unipixie.solvers.material_sampling import PointMaterial
+
+    body = Body.from_mesh(trimesh.creation.box(extents=(CUBE, CUBE, CUBE)))
+    g = np.linspace(-CUBE / 2, CUBE / 2, 21)
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    pot = pts[:, 2] < 0.0
+    material = PointMaterial(pts, np.where(pot, held_E, 2e5), np.where(pot, 0.3, 0.35), np.where(pot, 2000.0, 1000.0),
+                             np.where(pot, materials.get("stationary").id, materials.get("jelly").id))
+    scenario = Scenario(ground_height=None, pinned_box=[[-1, -1, -1], [1, 1, 0.02]])
+    return sm.prepare(body, material, scenario, np.linspace(0.0, 0.05, 3), settings={"anchors": anchors})
+
+
+def test_held_material_does_not_stiffen_the_free_material():
+    """A held class never deforms and its E is no material's (the stationary class's prior is 10⁸–10¹¹ Pa): the
+    jelly above it moves and steps the same whatever that E.  The springs joining free anchors to held ones take the
+    free end's stiffness, and a clamped anchor's cell mean of E leaves out the held fill points in its cell; with the
+    held end's own stiffness or the mixed cell mean, the demo plant's soil anchors on its pot set a 7.5 µs substep
+    (61.5 µs with the rule).  At 200 kPa and 2 GPa the substep and motion agree; before the rule the 2 GPa pot gave a
+    substep ~60 times shorter."""
+    soft, hard = potted_block(2e5), potted_block(2e9)
+    held = soft.network.held
+    assert held.any() and (soft.network.pinned & ~held).any() and (~soft.network.pinned).any()
+    steps = [s.stable_substep(s.spring_kappa, np.zeros_like(s.spring_kappa), s.star_stiffness) for s in (soft, hard)]
+    assert steps[1] == pytest.approx(steps[0], rel=1e-9)
+    np.testing.assert_allclose(hard.run([]).positions, soft.run([]).positions, atol=1e-7)
+    # a spring from a free anchor to a held one is the free anchor's at both ends
+    s, ends = hard.network.springs, hard.spring_ends
+    joins = held[s[:, 0]] & ~hard.network.pinned[s[:, 1]]
+    assert joins.any() and np.all(ends[joins, 0] == s[joins, 1]) and np.all(ends[joins, 1] == s[joins, 1])
