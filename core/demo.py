@@ -93,8 +93,9 @@ SPRING_SUBSTEP_LIMIT = 20_000
 frame than this (20 000 × 48 frames is minutes on 2 CPU cores), instead of running for an hour."""
 
 DEMO_SPRING_ANCHORS = 1024
-"""The full demo's spring-mass anchors: its plant moves as at the bake default of 2048 (both 32 mm RMS from the
-MPM plant over the clip, 4.4 % of the plant's size) in a quarter of the time (83 s against 331 s on 2 cores)."""
+"""The full demo's spring-mass anchors: its plant moved as at the bake default of 2048 (both 32 mm RMS from the
+MPM plant over the clip, 4.4 % of the plant's size) in a quarter of the time (83 s against 331 s on 2 cores, before
+the held-material rule of docs/spring_mass.md; since then 17.3 s at 1024 anchors, 33.6 mm from MPM)."""
 
 FULL = DemoPlan("full", views=24, resolution=224, frames=48, fps=24, mpm_budget=1.2e8,
                 mpm_cells=(10, 32), lbs_settings={},
@@ -105,8 +106,10 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT}, sheet_frames=4,
                  sheet_size=(480, 240))
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
-"""The demo's bakes start in this order, the longest first (they run side by side on the CPU cores; measured on
-2 cores: spring-mass 83 s, each MPM plant about 70 s, the LBS duck 6 s)."""
+"""The demo's bakes start in this order (they run side by side on the CPU cores).  Measured on 2 idle cores in the
+full demo (2026-11-27): spring-mass 17 s, each MPM plant 56–63 s, the LBS duck 10 s — with two at a time any order
+that starts an MPM plant at once ends after the third MPM plant (about 120 s); this one keeps the spring-mass bake's
+result early."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"

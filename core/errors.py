@@ -57,6 +57,23 @@ class SimulationDiverged(UserError):
     exit_code = EXIT_SIMULATION_FAILED
 
 
+def read_npz(path, what: str = "archive") -> dict:
+    """Every array of the ``.npz`` file ``path``, by key, loaded without pickles (an object array is refused); a
+    missing file, or one that is not a readable ``.npz``, is a :class:`UserError` that names the file and ``what``
+    it should have been (``"archive"``, ``"training sample"``)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    if not Path(path).is_file():
+        raise UserError(f"{path}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as exc:  # a corrupt zip, not an npz, a lone .npy array (no .files), an object array, ...
+        raise UserError(f"{path}: not a readable .npz {what} ({type(exc).__name__}: {exc})") from None
+
+
 def read_json(path):
     """The parsed contents of the JSON file ``path``; a file that is not valid JSON is a :class:`UserError`
     that names it (whether the file exists is the caller's check, with its own remedy)."""

@@ -14,7 +14,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .errors import UserError
+from .errors import UserError, read_npz
 
 FORMATS = {
     "views": "unipixie.views/1",
@@ -57,15 +57,7 @@ REQUIRED_KEYS = {
 
 def _load_npz(path, fmt_key: str) -> dict:
     path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:  # corrupt zip, not an npz, ...
-        raise UserError(f"{path}: not a readable .npz archive ({exc})") from None
-    if not isinstance(data, dict):
-        raise UserError(f"{path}: not a .npz archive (a single array)")
+    data = read_npz(path)
     fmt = str(data.get("format", ""))
     _check(fmt == FORMATS[fmt_key], f"{path}: key 'format' is {fmt!r}, expected {FORMATS[fmt_key]!r}")
     missing = [k for k in REQUIRED_KEYS[fmt_key] if k not in data]

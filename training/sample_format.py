@@ -48,7 +48,7 @@ from typing import Optional
 import numpy as np
 
 from ..core.atomic_io import is_temporary, save_npz
-from ..core.errors import UserError, read_json
+from ..core.errors import UserError, read_json, read_npz
 from ..core.types import FeatureGrid, GridGeometry
 from ..solvers.materials import NUM_CLASSES
 from ..solvers.skinning import LBS_PARAM_COUNT
@@ -188,13 +188,7 @@ class TrainingSample:
     @classmethod
     def load(cls, path) -> "TrainingSample":
         path = Path(path)
-        if not path.is_file():
-            raise UserError(f"{path}: training sample not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                d = {k: z[k] for k in z.files}
-        except Exception as exc:
-            raise UserError(f"{path}: not a readable .npz training sample ({exc})") from None
+        d = read_npz(path, "training sample")
         fmt = str(d.get("format", ""))
         if fmt != SAMPLE_FORMAT:
             raise UserError(f"{path}: key 'format' is {fmt!r}, expected {SAMPLE_FORMAT!r}")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
+from ..errors import UserError, read_npz
 from .material import MeasuredMaterial
 from .scenario_json import scenario_from_dict, scenario_key_warnings
 from .types import Measurement
@@ -26,13 +26,7 @@ def load_npz(path) -> Measurement:
     """Read and validate a ``unipixie.measurement/1`` archive; a :class:`UserError` names any broken key."""
     path = Path(path)
     src = str(path)
-    if not path.is_file():
-        raise UserError(f"{src}: file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:
-        raise UserError(f"{src}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
+    data = read_npz(path)
     for key in REQUIRED_KEYS:
         if key not in data:
             raise UserError(f"{src}: key '{key}' is missing (a measurement needs {', '.join(REQUIRED_KEYS)})")
