@@ -220,12 +220,11 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"part_code_probe: error: {exc}", file=sys.stderr)
         return 2
-    text = json.dumps(result, indent=1)
-    print(text)
     if args.out:
-        from ..core.atomic_io import write_text
+        from ..core.atomic_io import write_json
 
-        write_text(Path(args.out), text)
+        write_json(Path(args.out), result, indent=1)
+    print(json.dumps(result, indent=1))
     return 0
 
 
