@@ -92,14 +92,9 @@ SPRING_SUBSTEP_LIMIT = 20_000
 """The demo's spring-mass bakes stop (and are reported) when the predicted springs need more substeps per
 frame than this (20 000 × 48 frames is minutes on 2 CPU cores), instead of running for an hour."""
 
-DEMO_SPRING_ANCHORS = 1024
-"""The full demo's spring-mass anchors: its plant moved as at the bake default of 2048 (both 32 mm RMS from the
-MPM plant over the clip, 4.4 % of the plant's size) in a quarter of the time (83 s against 331 s on 2 cores, before
-the held-material rule of docs/spring_mass.md; since then 17.3 s at 1024 anchors, 33.6 mm from MPM)."""
-
 FULL = DemoPlan("full", views=24, resolution=224, frames=48, fps=24, mpm_budget=1.2e8,
                 mpm_cells=(10, 32), lbs_settings={},
-                spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT, "anchors": DEMO_SPRING_ANCHORS},
+                spring_settings={"max_substeps_per_frame": SPRING_SUBSTEP_LIMIT},
                 sheet_frames=6, sheet_size=(720, 360))
 QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget=1.2e7,
                  mpm_cells=(8, 14), lbs_settings={"cubature_points": 120, "mass_samples": 1000, "collision_points": 64},
@@ -107,9 +102,9 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  sheet_size=(480, 240))
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
 """The demo's bakes start in this order (they run side by side on the CPU cores).  Measured on 2 idle cores in the
-full demo (2026-11-27): spring-mass 17 s, each MPM plant 56–63 s, the LBS duck 10 s — with two at a time any order
-that starts an MPM plant at once ends after the third MPM plant (about 120 s); this one keeps the spring-mass bake's
-result early."""
+full demo (2026-11-27): spring-mass 52 s (the bake default of 2048 anchors), each MPM plant 56–63 s, the LBS duck
+10 s — two at a time, the bakes end after about 120 s in any order that starts the spring-mass or an MPM plant
+first."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
