@@ -181,6 +181,7 @@ def run_probe(root, train_split: str = "train", test_split: str = "test", draws:
         test_rows = part_rows(ds, test_ids, progress=bar)
         maps = fit_code_maps(train_rows)
         read = read_codes(maps, test_rows)
+        # no group reaches min_parts: every part is read as its (class, part) group's mean training code
         group_mean = read_codes(fit_code_maps(train_rows, min_parts=len(train_rows) + 1), test_rows)
         readings = {"part_reader": defaultdict(dict), "part_knower": defaultdict(dict)}
         for r, u, g in zip(test_rows, read, group_mean):
