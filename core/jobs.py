@@ -1,10 +1,124 @@
-"""Driving job generators: a job is a generator that yields ``(fraction, status)`` as it goes and returns its
-result (rendering views, computing features, baking); the Blender add-on drives one from a modal timer, these
-functions drive them to their end (the command line, scripts, tests)."""
+"""Jobs and worker threads, one toolkit for the whole package.
+
+A *job* is a generator that yields ``(fraction, status)`` as it goes and returns its result (rendering views,
+computing features, baking); the Blender add-on drives one from a modal timer, :func:`run_job` and
+:func:`run_side_by_side` drive them to their end (the command line, scripts, tests).
+
+Long work inside a job runs in a *worker thread* so that the job's driver (Blender's UI, a side-by-side loop)
+stays responsive: :func:`start_worker` is the one place that starts one (a daemon thread, in a copy of the
+caller's context variables, its outcome a :class:`concurrent.futures.Future`); :class:`BackgroundRun` runs
+``work(progress)`` there with a cancellable :class:`~.progress.Progress`; :func:`worker_job` is that run as a job
+(closing the job — Esc — cancels the work and waits for it).  Daemon threads, not a ``ThreadPoolExecutor``,
+whose threads the interpreter joins at exit: a cancelled or abandoned worker must never hold Blender or the
+command line open.
+
+Uses only :mod:`.errors` and :mod:`.progress`.
+"""
 
 from __future__ import annotations
 
+import contextvars
+import threading
+from concurrent.futures import Future, wait as _wait_futures
+from typing import Callable, Iterator, Optional
+
 from .errors import CancelledError
+from .progress import Progress
+
+
+def start_worker(fn: Callable, *args, name: str = "unipixie-worker") -> Future:
+    """Run ``fn(*args)`` in a new daemon thread named ``name``, in a copy of the calling thread's context variables.
+
+    Returns the :class:`~concurrent.futures.Future` of its outcome: ``result()`` gives the return value or re-raises
+    what ``fn`` raised (any :class:`BaseException`, a cancellation included) in the caller's thread.
+    """
+    future: Future = Future()
+    future.set_running_or_notify_cancel()
+    context = contextvars.copy_context()
+
+    def main():
+        try:
+            value = context.run(fn, *args)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread through the future
+            future.set_exception(exc)
+        else:
+            future.set_result(value)
+
+    threading.Thread(target=main, name=name, daemon=True).start()
+    return future
+
+
+def wait_workers(futures, timeout: Optional[float] = None) -> bool:
+    """Wait until every future of :func:`start_worker` has its outcome (at most ``timeout`` s); True when all have."""
+    futures = list(futures)
+    _wait_futures(futures, timeout=timeout)
+    return all(f.done() for f in futures)
+
+
+class BackgroundRun:
+    """Run ``work(progress)`` in a worker thread (:func:`start_worker`); the caller polls and may cancel.
+
+    The Blender operator yields between polls so the UI stays responsive; cancelling sets the shared
+    :class:`~.progress.Progress`'s flag, which the solvers check at every step.  ``progress``: the run's progress
+    (default: a new one, no bar, described by ``description``).
+    """
+
+    def __init__(self, work: Callable[[Progress], object], description: str = "", progress: Optional[Progress] = None,
+                 name: str = "unipixie-bake"):
+        self.progress = progress if progress is not None else Progress(description=description, show_bar=False)
+        self._work = work
+        self._name = name
+        self._future: Optional[Future] = None
+
+    def start(self) -> "BackgroundRun":
+        self._future = start_worker(self._work, self.progress, name=self._name)
+        return self
+
+    @property
+    def done(self) -> bool:
+        return self._future is not None and self._future.done()
+
+    def wait(self, timeout: Optional[float] = None) -> bool:
+        if self._future is not None:
+            wait_workers([self._future], timeout)
+        return self.done
+
+    @property
+    def fraction(self) -> float:
+        return self.progress.fraction
+
+    @property
+    def status(self) -> str:
+        return self.progress.status or ""
+
+    def cancel(self, wait: bool = True) -> None:
+        self.progress.cancel()
+        if wait:
+            self.wait()
+
+    def result(self):
+        """The work's return value; re-raises its exception in the caller's thread."""
+        if not self.done:
+            raise RuntimeError("the background run has not finished")
+        return self._future.result()
+
+
+def worker_job(work: Callable[[Progress], object], description: str = "", progress: Optional[Progress] = None,
+               span: tuple = (0.0, 1.0), poll_s: float = 0.05, name: str = "unipixie-bake",
+               idle_status: str = "") -> Iterator[tuple]:
+    """:class:`BackgroundRun` as a job: yields ``(fraction, status)`` while ``work(progress)`` runs, the run's
+    fraction mapped onto ``span`` = (start, end) of the job's own and its status (``idle_status``, else
+    ``description``, while it has none); closing the generator (Esc) cancels the work and waits for it.  Returns the
+    work's result (re-raises its exception)."""
+    run = BackgroundRun(work, description=description, progress=progress, name=name).start()
+    lo, hi = float(span[0]), float(span[1])
+    try:
+        while not run.wait(poll_s):
+            yield lo + (hi - lo) * run.fraction, run.status or idle_status or description
+    finally:
+        if not run.done:
+            run.cancel(wait=True)
+    return run.result()
 
 
 def run_job(job, progress=None):

@@ -279,18 +279,12 @@ def fetch_job(feature_model: str = "", folder=None, force: bool = False):
     """:func:`fetch_weights` as a job generator of ``(fraction, status)`` (the download runs in a worker thread;
     closing the generator — Esc in Blender — cancels it and keeps nothing of the file being downloaded).
     Returns the :class:`FetchResult`."""
-    from .bake import BackgroundRun
+    from .jobs import worker_job
 
     source = weights_source(feature_model)
     yield 0.0, f"asking {source.endpoint} for {source.feature_model} {source.pretrained}"
-    run = BackgroundRun(lambda progress: fetch_weights(source.feature_model, folder, progress=progress, force=force),
-                        description="fetch CLIP weights").start()
-    try:
-        while not run.wait(0.05):
-            yield run.fraction, run.status or "downloading"
-    finally:
-        if not run.done:
-            run.cancel(wait=True)
-    result = run.result()
+    result = yield from worker_job(lambda progress: fetch_weights(source.feature_model, folder, progress=progress,
+                                                                  force=force),
+                                   description="fetch CLIP weights", idle_status="downloading", name="unipixie-fetch")
     yield 1.0, "verified"
     return result

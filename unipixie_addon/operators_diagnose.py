@@ -17,7 +17,6 @@ UI only: each operator calls :mod:`unipixie.core.measurement`, :mod:`unipixie.co
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import bpy
@@ -163,28 +162,12 @@ class UNIPIXIE_OT_measurement_from_object(bpy.types.Operator):
 
 
 def _run_in_thread(fn, progress):
-    """Run ``fn()`` in a worker thread, yielding (fraction, status) until it ends; Esc cancels it."""
-    out: dict = {}
+    """Run ``fn()`` (which reports to ``progress``) in a worker thread, yielding (fraction, status) until it ends;
+    Esc cancels it."""
+    from ..core.jobs import worker_job
 
-    def work():
-        try:
-            out["value"] = fn()
-        except BaseException as exc:  # handed to the main thread
-            out["error"] = exc
-
-    th = threading.Thread(target=work, name="unipixie-diagnosis", daemon=True)
-    th.start()
-    try:
-        while th.is_alive():
-            th.join(0.05)
-            yield progress.fraction, progress.status or "working"
-    finally:
-        if th.is_alive():
-            progress.cancel()
-            th.join()
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
+    return (yield from worker_job(lambda _progress: fn(), progress=progress, idle_status="working",
+                                  name="unipixie-diagnosis"))
 
 
 class UNIPIXIE_OT_compare_measurement(JobOperator, bpy.types.Operator):

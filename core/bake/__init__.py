@@ -2,7 +2,7 @@
 
 The object and its solid (:mod:`.body`), the frames (:mod:`.frames`), where the material comes from
 (:mod:`.sources`), the request (:mod:`.options`) and its simulation (:mod:`.simulation`, in a worker thread:
-:mod:`.background`), how the motion is stored (:mod:`.output`; LBS handles as bones: :mod:`.armature`; PC2 files:
+:class:`BackgroundRun` of :mod:`unipixie.core.jobs`), how the motion is stored (:mod:`.output`; LBS handles as bones: :mod:`.armature`; PC2 files:
 :mod:`.pc2`), batch jobs and shards (:mod:`.jobs`), job manifests (:mod:`.manifest`) and the record a bake leaves
 on its object (:mod:`.record`).  The Blender side is :mod:`unipixie.core.blender_io.bake`.  This face re-exports
 the public names, so callers write ``from ..bake import BakeOptions``; the modules import each other directly.
@@ -10,7 +10,7 @@ the public names, so callers write ``from ..bake import BakeOptions``; the modul
 
 from .armature import (ArmaturePlan, armature_deform, chain_channels, chain_deform, continuous_svd, lbs_blend_form,
                        plan_armature)
-from .background import BackgroundRun
+from ..jobs import BackgroundRun
 from .body import SIZE_REFUSE_RANGE, SIZE_WARN_RANGE, BakeObject, build_body, check_size
 from .frames import FrameRange, parse_frame_list, parse_frames
 from .jobs import (JOB_KEYS, SCENARIO_OVERRIDE_KEYS, BakeJob, check_job_outputs, expand_jobs, expand_out,

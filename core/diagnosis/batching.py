@@ -16,10 +16,11 @@ is run one parameter set per launch (``max_batch`` 1), with the same guarantee.
 
 from __future__ import annotations
 
-import contextvars
 import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Sequence
+
+from ..jobs import start_worker, wait_workers
 
 
 @dataclass
@@ -82,7 +83,7 @@ class BatchGate:
         self._failed = None
         self._running = len(jobs)
         self._waiting = 0
-        threads, results, _ = self._spawn(jobs)
+        workers, results, _ = self._spawn(jobs)
         while True:
             with self._cond:
                 while not self._batch_ready():
@@ -102,15 +103,14 @@ class BatchGate:
                     if self._failed is None:
                         self._failed = exc
                     self._finish(batch, error=exc)
-        for t in threads:
-            t.join()
+        wait_workers(workers)
         failed, self._failed = self._failed, None
         if failed is not None:
             raise failed
         return results
 
     def _spawn(self, jobs: list) -> tuple[list, list, list]:
-        """Start one thread per job (already counted in ``_running``); returns (threads, results, [jobs ended]).
+        """Start one worker per job (already counted in ``_running``); returns (their futures, results, [jobs ended]).
         A job's exception stops every job (``_failed``) and is raised by the outermost :meth:`map`."""
         results: list = [None] * len(jobs)
         done = [0]
@@ -130,11 +130,7 @@ class BatchGate:
                     self._cond.notify_all()
 
         # each job runs in a copy of the starting thread's context (its context variables, e.g. counters)
-        threads = [threading.Thread(target=contextvars.copy_context().run, args=(work, i), name=f"unipixie-fit-{i}",
-                                    daemon=True) for i in range(len(jobs))]
-        for t in threads:
-            t.start()
-        return threads, results, done
+        return [start_worker(work, i, name=f"unipixie-fit-{i}") for i in range(len(jobs))], results, done
 
     def _batch_ready(self) -> bool:
         """Should the calling thread act now (the lock held)?  Yes when every job has ended, or when every job that
@@ -152,15 +148,14 @@ class BatchGate:
             self._running += len(jobs)
             self._waiting += 1  # the caller makes no requests while its jobs run
             self._cond.notify_all()
-        threads, results, done = self._spawn(jobs)
+        workers, results, done = self._spawn(jobs)
         with self._cond:
             while done[0] < len(jobs):
                 self._cond.wait()
             self._waiting -= 1
             self._cond.notify_all()
             failed = self._failed
-        for t in threads:
-            t.join()
+        wait_workers(workers)
         if failed is not None:
             raise failed
         return results

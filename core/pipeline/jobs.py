@@ -1,6 +1,6 @@
 """The model's two jobs: Predict (the α sweep) and Refine (the exact prediction at one α).
 
-Each runs in a worker thread (:class:`unipixie.core.bake.BackgroundRun`) as a job generator of
+Each runs in a worker thread (:func:`unipixie.core.jobs.worker_job`) as a job generator of
 ``(fraction, status)`` that returns its result; closing the generator (Esc) cancels it.  May use
 :mod:`.settings`, :mod:`.checkpoint`, the model's plan (:mod:`unipixie.core.model.plan`; the model itself is
 imported when run) and the cache.
@@ -19,16 +19,9 @@ from .settings import PipelineSettings
 
 def _background(work: Callable, description: str) -> Iterator[tuple[float, str]]:
     """Run ``work(progress)`` in a worker thread, yielding ``(fraction, status)``; closing cancels it."""
-    from ..bake import BackgroundRun
+    from ..jobs import worker_job
 
-    run = BackgroundRun(work, description=description).start()
-    try:
-        while not run.wait(0.05):
-            yield run.fraction, run.status or description
-    finally:
-        if not run.done:
-            run.cancel(wait=True)
-    return run.result()
+    return (yield from worker_job(work, description=description))
 
 
 def predict_job(grid_path, settings: PipelineSettings) -> Iterator[tuple[float, str]]:

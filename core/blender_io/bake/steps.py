@@ -1,9 +1,9 @@
 """The whole bake of an object: :func:`bake_steps` reads and checks everything first (bad input changes nothing),
-runs the simulation in a worker thread (:class:`~unipixie.core.bake.BackgroundRun`) and writes, as a generator of
+runs the simulation in a worker thread (:func:`unipixie.core.jobs.worker_job`) and writes, as a generator of
 ``(fraction, status)`` for the add-on's modal operator (closing it cancels and removes anything half-written);
 :func:`bake_object` runs it to the end (Python API, command line).
 
-Uses bpy, :mod:`unipixie.core.bake` and :mod:`.reading`, :mod:`.options`, :mod:`.scenario`, :mod:`.removal`,
+Uses bpy, :mod:`unipixie.core.bake`, :mod:`unipixie.core.jobs` and :mod:`.reading`, :mod:`.options`, :mod:`.scenario`, :mod:`.removal`,
 :mod:`.result`.
 """
 
@@ -13,7 +13,8 @@ from typing import Iterator, Optional
 
 import bpy
 
-from ...bake import BackgroundRun, BakeOptions, choose_output, simulate
+from ...bake import BakeOptions, choose_output, simulate
+from ...jobs import worker_job
 from ...progress import Progress, silent
 from .options import object_settings, options_from_settings
 from .reading import read_object
@@ -38,15 +39,9 @@ def bake_steps(obj, options: Optional[BakeOptions] = None, scenario=None, scene=
     choose_output(options.solver, options.output, bo.vertex_count, options.frames.count,
                   has_other_shape_keys=own_keys, mesh_shared=obj.data.users > 1)  # refuse before simulating
     yield 0.0, "starting"
-    run = BackgroundRun(lambda progress: simulate(bo, scenario, options, progress),
-                        description=f"{options.solver} bake").start()
-    try:
-        while not run.wait(wait):
-            yield 0.85 * run.fraction, run.status or "simulating"
-    finally:
-        if not run.done:
-            run.cancel(wait=True)
-    result = run.result()
+    result = yield from worker_job(lambda progress: simulate(bo, scenario, options, progress),
+                                   description=f"{options.solver} bake", idle_status="simulating", span=(0.0, 0.85),
+                                   poll_s=wait)
     yield 0.85, "writing"
     gen = write_result(obj, bo, result, options)
     try:
