@@ -220,3 +220,32 @@ def test_recompute_an_evaluation_dir(tmp_path, capsys):
     assert "evaluation directory not found" in capsys.readouterr().err
     (out / "report.json").write_text("{}")
     assert eb.main([str(out)]) == 2 and "not an evaluation report" in capsys.readouterr().err
+
+
+def test_an_older_evaluation_gets_its_facts_from_the_dataset(tmp_path, capsys, monkeypatch):
+    occ = np.zeros((5, 5, 5), bool)
+    occ[1:4, 1:4, 1:4] = True
+    grid = SimpleNamespace(occupancy=occ, indices=np.argwhere(occ))
+    ds = _Dataset((np.argwhere(occ)[:, 0] == 3).astype(np.int64))
+    ds.sample = lambda oid: SimpleNamespace(grid=grid)
+    root = tmp_path / "eval" / "predictions"
+    ev._save_npz(root / "targets" / "x.npz", **_targets(27))                    # written before the facts existed
+    ev._save_npz(root / "m" / "x.npz", **_prediction(np.where(np.argwhere(occ)[:, 0] == 2, 1.0, 0.0)))
+    assert eb.error_breakdown(root)["methods"]["m"]["by_class"] == {}
+    assert eb.add_missing_facts(root, ds) == 1 and eb.add_missing_facts(root, ds) == 0
+    m = eb.error_breakdown(root)["methods"]["m"]
+    assert m["not_available"] == {} and set(m["by_class"]) == {"rubber_duck"}
+    assert m["by_boundary_distance"]["<=1"]["share_pooled"] == pytest.approx(1.0)   # the layer next to the top part
+    assert m["interior_share_pooled"] == pytest.approx(1 / 9)                    # 1 of the 9 erring voxels is interior
+    ev._save_npz(root / "targets" / "x.npz", **_targets(26))
+    with pytest.raises(UserError, match="not the dataset this evaluation ran on"):
+        eb.add_missing_facts(root, ds)
+    assert eb.main([str(tmp_path / "eval"), "--data", str(tmp_path / "no_dataset")]) == 2
+    assert "error_breakdown: error:" in capsys.readouterr().err
+    # the command: the old targets get their facts from the dataset given
+    from unipixie.training import dataset as D
+
+    ev._save_npz(root / "targets" / "x.npz", **_targets(27))
+    monkeypatch.setattr(D, "DatasetDir", lambda path: ds)
+    assert eb.main([str(tmp_path / "eval"), "--data", "the_dataset"]) == 0
+    assert json.loads((tmp_path / "eval" / "breakdown.json").read_text())["methods"]["m"]["not_available"] == {}

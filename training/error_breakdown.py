@@ -1,6 +1,6 @@
 """Where a method's log10 E error lies: by object class, surface vs. interior voxel, distance to a part boundary.
 
-    python -m unipixie.training.error_breakdown EVAL_DIR      # recompute report["breakdown"] of an evaluation
+    python -m unipixie.training.error_breakdown EVAL_DIR [--data DATASET]   # recompute report["breakdown"]
 
 When the evaluation (:mod:`.evaluate`) writes an object's targets it also stores, beside the annotated ranges, facts
 about each occupied voxel that are used **only for scoring** (no model and no feature ever sees them):
@@ -233,14 +233,52 @@ def error_breakdown(pred_root) -> dict:
 
 
 # =========================================================================== recompute an evaluation's breakdown
-def recompute(evaluation_dir) -> dict:
-    """Recompute the breakdown of an evaluation's ``--out`` folder; rewrite its report.json / report.md (if any)."""
+def add_missing_facts(pred_root, ds, progress=None) -> int:
+    """Add the scoring facts to the targets files of ``pred_root`` that lack any of them; returns how many changed.
+
+    ds: the evaluated :class:`.dataset.DatasetDir` (its ``sample``, ``annotation``, ``part_labels``); an object
+    whose occupied voxels are not the targets' (another dataset) is a :class:`UserError`.  progress: a
+    :class:`~..core.progress.Progress` (one step per targets file; cancellable) or None.
+    """
+    from ..core.atomic_io import save_npz
+
+    tdir = Path(pred_root) / "targets"
+    if not tdir.is_dir():
+        raise UserError(f"{pred_root}: no targets/ folder; not an evaluation's predictions directory")
+    changed = 0
+    for f in sorted(tdir.glob("*.npz")):
+        targets = _load(f)
+        if all(k in targets for k in GROUPS.values()):
+            if progress is not None:
+                progress.step(1.0, f.stem)
+            continue
+        grid = ds.sample(f.stem).grid
+        if int(grid.occupancy.sum()) != len(targets["E_min"]):
+            raise UserError(f"{f}: {len(targets['E_min'])} voxels, but the dataset's {f.stem!r} has "
+                            f"{int(grid.occupancy.sum())}: not the dataset this evaluation ran on")
+        targets = {k: v for k, v in targets.items() if k not in (*GROUPS.values(), NOTE_KEY)}
+        save_npz(f, **targets, **scoring_facts(ds, f.stem, grid))
+        changed += 1
+        if progress is not None:
+            progress.step(1.0, f.stem)
+    return changed
+
+
+def recompute(evaluation_dir, data=None, progress=None) -> dict:
+    """Recompute the breakdown of an evaluation's ``--out`` folder; rewrite its report.json / report.md (if any).
+
+    data: the evaluated dataset's directory, to add the scoring facts to targets written without them (or None).
+    """
     from ..core.errors import read_json
     from .evaluation_report import write_report
 
     out = Path(evaluation_dir)
     if not out.is_dir():
         raise UserError(f"{out}: evaluation directory not found")
+    if data is not None:
+        from .dataset import DatasetDir
+
+        add_missing_facts(out / "predictions", DatasetDir(data), progress)
     breakdown = error_breakdown(out / "predictions")
     report_path = out / "report.json"
     if report_path.is_file():
@@ -265,12 +303,18 @@ def main(argv=None) -> int:
                                             "predictions; updates its report.json and report.md (or writes "
                                             "breakdown.json when there is no report)")
     p.add_argument("evaluation", metavar="EVAL_DIR", help="the --out directory of 'unipixie evaluate'")
+    p.add_argument("--data", metavar="DIR", help="the evaluated dataset: adds the scoring facts (surface, distance to "
+                                                 "a part boundary, class) to targets an older evaluation wrote without")
     args = p.parse_args(argv)
+    from ..core.progress import Progress
+
     try:
-        breakdown = recompute(args.evaluation)
-    except UserError as exc:
+        n = len(list((Path(args.evaluation) / "predictions" / "targets").glob("*.npz"))) if args.data else 0
+        with Progress(total=max(n, 1), description="scoring facts", show_bar=bool(n)) as progress:
+            breakdown = recompute(args.evaluation, args.data, progress)
+    except UserError as exc:                                     # a cancellation included (CancelledError)
         print(f"error_breakdown: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     print("\n".join(breakdown_markdown(breakdown)))
     return 0
 
