@@ -200,6 +200,19 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
         got = np.mean(per_obj, axis=0)
         want = [m["logE_mse"], m["logrho_mse"], m["nu_mse"], m["material_acc"]]
         assert np.allclose(got, want, rtol=1e-6, atol=1e-9), (method, got, want)
+    # where the error lies (training/error_breakdown.py): every voxel in one bin of each grouping, the all-voxel
+    # per-object mean is Table 1's number, the classes are the test objects'
+    breakdown = report["breakdown"]["methods"]
+    assert set(breakdown) == set(report["table1"])
+    for method, b in breakdown.items():
+        assert b["not_available"] == {} and b["objects"] == len(test_ids), method
+        assert np.isclose(b["all"]["logE_mse_object_mean"], report["table1"][method]["logE_mse"], rtol=1e-6)
+        for group in ("by_voxel_kind", "by_boundary_distance", "by_class"):
+            assert sum(x["voxels"] for x in b[group].values()) == b["voxels"], (method, group)
+            assert np.isclose(sum(x["share_pooled"] for x in b[group].values()), 1.0), (method, group)
+    assert set(breakdown["unipixie"]["by_class"]) == {oid.split("_", 1)[1] for oid in test_ids}
+    assert breakdown["unipixie"]["by_boundary_distance"]["<=1"]["voxels"] > 0
+    assert "## Where the log E error lies" in (out / "report.md").read_text()
     # the deterministic baseline predicts one field for every α
     p = np.load(out / "predictions" / "unet_deterministic" / f"{test_ids[0]}.npz")
     assert np.array_equal(p["log10_E"][0], p["log10_E"][2])

@@ -6,7 +6,8 @@
     DIR/report.md          the same as Markdown tables
     DIR/logE_distributions.png
     DIR/predictions/<method>/<object>.npz   the raw predictions every number is computed from
-    DIR/predictions/targets/<object>.npz    the annotated ranges of the occupied voxels
+    DIR/predictions/targets/<object>.npz    the annotated ranges of the occupied voxels, and facts used only for
+                                            scoring (surface, distance to a part boundary, class: .error_breakdown)
     DIR/renders/...        (Table 2) the rendered frames compared by PSNR / SSIM
 
 **Table 1** (property regression).  For every test object, method and α ∈ ``alphas`` (default 0, 0.5, 1)
@@ -31,6 +32,9 @@ object's size); PSNR / SSIM compare Blender renders (Workbench, ``render_views``
 ``render_frames`` frames of the deformed, textured object with the same frames of the ground truth.
 Every simulation follows the ground-truth protocol (same particles, scenario, wave-speed cap).
 
+**Where the error lies** (``report["breakdown"]``, :mod:`.error_breakdown`): per method, the log10 E squared error
+by object class, surface vs. interior voxel and distance to the nearest voxel of another part.
+
 **Figure**: histograms of log10 E over the occupied voxels of the test objects, target vs. UniPixie's
 prediction, for the MPM and LBS heads, and of log10 k over the anchors for the spring-mass head, at each α.
 """
@@ -50,6 +54,8 @@ from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
 from ..core import annotation as ann_mod
 from ..core.model.config import HEADS
+from .error_breakdown import error_breakdown, scoring_facts
+from .evaluation_report import write_report
 from .oracle import REFERENCES, OracleSettings, oracle_predictions
 
 REPORT_FORMAT = "unipixie.evaluation/1"
@@ -511,7 +517,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         m = sample.mpm
         targets = {"E_min": m.E_min, "E_max": m.E_max, "nu_min": m.nu_min, "nu_max": m.nu_max,
                    "density_min": m.density_min, "density_max": m.density_max, "material": m.material}
-        _save_npz(pred_root / "targets" / f"{oid}.npz", **targets)
+        _save_npz(pred_root / "targets" / f"{oid}.npz", **targets, **scoring_facts(ds, oid, sample.grid))
         preds = methods.predict_all(sample.grid, alphas)
         for name, (arrays, _) in preds.items():
             _save_npz(pred_root / name / f"{oid}.npz", **arrays)
@@ -545,6 +551,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         _drop_references(pred_root)
         for name in REFERENCES:
             t1.pop(name, None)
+    breakdown = error_breakdown(pred_root)     # after the drop: a failed reference is not broken down either
     summary = ("logE_mse", "logrho_mse", "nu_mse", "material_acc", "runtime_s")
     report = {"format": REPORT_FORMAT, "checkpoint": str(checkpoint) if checkpoint else None,
               "dataset": str(data), "split": settings.split, "objects": len(ids), "alphas": alphas,
@@ -555,7 +562,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
               "references_skipped": oracle_skipped,
               "table1": t1, "in_range": {k: v.get("in_range", {}) for k, v in t1.items()},
               "table2": _summarise_table2(table2_rows, renders), "table2_objects": sim_ids,
-              "table2_failures": failures, "seconds": time.perf_counter() - t_all}
+              "table2_failures": failures, "breakdown": breakdown, "seconds": time.perf_counter() - t_all}
     card = Path(data) / "dataset.json"
     if card.is_file():
         c = json.loads(card.read_text())
@@ -566,10 +573,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
         report["model_is_clip"] = not methods.model.cfg.feature_model.startswith("offline-")
     fig = distributions_figure(out / "logE_distributions.png", dists, alphas) if dists else None
     report["figure"] = fig.name if fig else None
-    from ..core.atomic_io import write_text
-
-    write_text(out / "report.json", json.dumps(report, indent=1, default=_jd))
-    write_text(out / "report.md", report_markdown(report))
+    write_report(out, report)
     return report
 
 
@@ -591,14 +595,6 @@ def _save_oracle(ds, oid, sample, alphas, settings: OracleSettings, pred_root: P
     for name, arrays in preds.items():
         _save_npz(pred_root / name / f"{oid}.npz", **arrays)
     return None
-
-
-def _jd(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
 
 
 def _add(dists, key, target, pred):
@@ -681,53 +677,3 @@ def _summarise_table2(rows: list, renders: list) -> list:
                     "ssim": float(np.mean([r["ssim"] for r in rd])) if rd else None,
                     "errors": sorted({r["error"] for r in rs if r["error"]})[:3]})
     return out
-
-
-def report_markdown(r: dict) -> str:
-    fm = r.get("model_feature_model") or ", ".join(r.get("feature_model") or [])
-    clip_note = "" if r.get("model_is_clip", False) else (" — features from the offline extractor (a seeded, "
-                                                         "untrained ViT), **not CLIP**")
-    L = [f"# Evaluation on the {r['split']} split", "",
-         f"- dataset: `{r['dataset']}` ({r['objects']} objects evaluated); checkpoint: `{r['checkpoint']}`",
-         f"- features: {fm}{clip_note}", f"- α values: {', '.join(f'{a:g}' for a in r['alphas'])}", "",
-         "## Table 1: physical property regression (averaged over α; log = log10)", "",
-         "| method | log E MSE | log ρ MSE | ν MSE | material acc. | runtime (s) |", "|---|---|---|---|---|---|"]
-    refs = r.get("references") or {}
-    shown = {name: (f"*{name}* (reference)" if name in refs else name) for name in r["table1"]}
-    for name, m in r["table1"].items():
-        L.append(f"| {shown[name]} | {m['logE_mse']:.4f} ± {m['logE_mse_std']:.3f} | {m['logrho_mse']:.4f} ± "
-                 f"{m['logrho_mse_std']:.3f} | {m['nu_mse']:.5f} ± {m['nu_mse_std']:.4f} | "
-                 f"{100 * m['material_acc']:.1f} % | {m['runtime_s']:.3f} |")
-    if refs:
-        L += ["", "References (not methods: they know what no image shows, and bound what any model can reach on "
-                  "these labels; training/oracle.py):"] + [f"- *{k}*: {v['description']}" for k, v in refs.items()]
-    elif r.get("references_skipped"):
-        L += ["", f"Reference predictors not computed: {r['references_skipped']}"]
-    L += ["", "Mean log E over the object non-decreasing in α: " + ", ".join(
-        f"{name} {100 * m['logE_monotone_fraction']:.0f} % of objects" for name, m in r["table1"].items()
-        if "logE_monotone_fraction" in m), ""]
-    L += ["", "Per α (log E MSE):", "", "| method | " + " | ".join(f"α = {a:g}" for a in r["alphas"]) + " |",
-          "|---|" + "---|" * len(r["alphas"])]
-    for name, m in r["table1"].items():
-        L.append(f"| {shown[name]} | " + " | ".join(f"{v:.4f}" for v in m["logE_mse_per_alpha"].values()) + " |")
-    L += ["", "## Predictions inside the annotated ranges (fraction of occupied voxels)", "",
-          "| method | α | quantity | tol 0 | tol 10 % | tol 25 % |", "|---|---|---|---|---|---|"]
-    for name, rng in r["in_range"].items():
-        for a, qs in rng.items():
-            for q, v in qs.items():
-                L.append(f"| {shown[name]} | {a} | {q} | " + " | ".join(f"{100 * v[t]:.1f} %" for t in ("0", "0.1", "0.25")) + " |")
-    if r["table2"]:
-        L += ["", f"## Table 2: solver fidelity against the ground-truth MPM motion ({len(r['table2_objects'])} objects)", "",
-              "| solver | method | α | RMSE (mm) | RMSE / size | PSNR (dB) | SSIM | time (s) | failed |",
-              "|---|---|---|---|---|---|---|---|---|"]
-        f = lambda x, fmt: "–" if x is None else format(x, fmt)  # noqa: E731
-        for row in r["table2"]:
-            L.append(f"| {row['solver']} | {row['method']} | {row['alpha']:g} | {f(None if row['rmse_m'] is None else 1000 * row['rmse_m'], '.2f')} | "
-                     f"{f(row['relative_rmse'], '.3f')} | {f(row['psnr'], '.2f')} | {f(row['ssim'], '.3f')} | "
-                     f"{f(row['seconds'], '.2f')} | {row['failed']} |")
-    if r.get("table2_failures"):
-        L += ["", "Table 2 objects skipped: " + "; ".join(f"{x['object_id']}: {x['error']}" for x in r["table2_failures"])]
-    if r.get("figure"):
-        L += ["", f"![log E distributions]({r['figure']})"]
-    L.append("")
-    return "\n".join(L)

@@ -82,6 +82,10 @@ def run(args) -> int:
     for name, m in report["methods"].items():
         print(f"{name}: log E MSE {m['logE_mse']:.4f}, log rho MSE {m['logrho_mse']:.4f}, nu MSE {m['nu_mse']:.5f}, "
               f"material {100 * m['material_acc']:.1f} %, {m['runtime_s']:.3f} s")
+    for name, b in report["breakdown"]["methods"].items():
+        if name in report["methods"] and b["interior_share_pooled"] is not None:
+            print(f"{name}: interior voxels carry {100 * b['interior_share_pooled']:.0f} % of the log E squared error "
+                  f"(report.md: where the error lies)")
     for name, m in report["references"].items():
         print(f"reference {name}: log E MSE {m['logE_mse']:.4f}, log rho MSE {m['logrho_mse']:.4f}, "
               f"nu MSE {m['nu_mse']:.5f}")
