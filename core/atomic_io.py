@@ -321,6 +321,34 @@ def write_text(path, text: str, encoding: str = "utf-8") -> Path:
     return write_bytes(path, text.encode(encoding))
 
 
+def json_default(o):
+    """``json.dumps(..., default=json_default)``: numpy arrays as lists, numpy scalars as Python numbers, dataclasses
+    as dicts, anything else as its ``str`` (paths, enums)."""
+    import dataclasses
+
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if dataclasses.is_dataclass(o) and not isinstance(o, type):
+        return dataclasses.asdict(o)
+    return str(o)
+
+
+def strict_json_default(o):
+    """As :func:`json_default` for numpy arrays and scalars; anything else is a ``TypeError`` (a report whose every
+    value must be a number, a string or a list of them)."""
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
 def write_json(path, obj, *, indent: Optional[int] = 2, default=None, allow_nan: bool = True,
                sort_keys: bool = False) -> Path:
     """Write ``obj`` as JSON (a trailing newline) atomically; returns ``path``."""

@@ -36,7 +36,7 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from ..core.atomic_io import save_npz, write_text
+from ..core.atomic_io import json_default, save_npz, write_text
 from ..core.errors import CancelledError, UserError, read_json
 from ..core.progress import Progress
 from ..core import annotation as ann_mod
@@ -229,15 +229,8 @@ def save_ground_truth(path: Path, gt) -> None:
                   lbs_E_scale=np.asarray(gt.lbs_E_scale, np.float64),
                   spring_stiffness=np.stack([gt.spring_stiffness[0.0], gt.spring_stiffness[1.0]]).astype(np.float64),
                   spring_softness=np.float64(gt.spring_softness), anchors=np.asarray(gt.anchors, np.float64),
-                  info=json.dumps(info, default=_json_default))
+                  info=json.dumps(info, default=json_default))
 
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
 
 
 # =========================================================================== building
@@ -353,7 +346,7 @@ def build_object(root: Path, index: int, settings: BuildSettings, renderer: Rend
               "timings": timings, "total_seconds": float(sum(timings.values())),
               "mpm": {str(a): gt.mpm_info[a] for a in sorted(gt.mpm_info)}, "fits": gt.fits,
               "spring_anchors": int(len(gt.anchors)), "sample_bytes": (root / "samples" / f"{obj.object_id}.npz").stat().st_size}
-    _atomic_write_text(odir / "record.json", json.dumps(record, indent=1, default=_json_default))
+    _atomic_write_text(odir / "record.json", json.dumps(record, indent=1, default=json_default))
     return record
 
 
@@ -520,7 +513,7 @@ def write_card(root) -> dict:
             "spring_anchors": sorted({r.get("spring_anchors", 0) for r in done}),
             "ranges": range_summary, "timings_s": timings, "capped_mass_fraction": capped, "fits": fits,
             "sample_bytes": _stats([r.get("sample_bytes") for r in done]), "settings": settings}
-    _atomic_write_text(root / "dataset.json", json.dumps(card, indent=1, default=_json_default))
+    _atomic_write_text(root / "dataset.json", json.dumps(card, indent=1, default=json_default))
     _atomic_write_text(root / "CARD.md", card_markdown(card))
     return card
 

@@ -5,21 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
-
-def json_default(o):
-    """JSON for what ``json`` cannot write itself: numpy scalars and arrays; anything else as its ``str``."""
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
 
 def write_report(out, report: dict) -> None:
     """Write ``out/report.json`` and ``out/report.md`` (atomically, each)."""
-    from ..core.atomic_io import write_text
+    from ..core.atomic_io import json_default, write_text
 
     out = Path(out)
     write_text(out / "report.json", json.dumps(report, indent=1, default=json_default))

@@ -2,16 +2,15 @@
 ``unipixie.bake/1``) listing everything the bake added, so that clearing it removes exactly that
 (:func:`make_record`, :func:`parse_record`, :func:`effects_to_json`).
 
-Uses only json and numpy.
+Uses json and :func:`unipixie.core.atomic_io.json_default`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from typing import Iterable, Optional
 
-import numpy as np
+from ..atomic_io import json_default
 
 
 BAKE_RECORD_KEY = "unipixie_bake"
@@ -23,7 +22,7 @@ def make_record(**fields) -> str:
     """The JSON stored on a baked object (:data:`BAKE_RECORD_KEY`): what was made, so clear_bake can undo it."""
     doc = {"format": BAKE_RECORD_FORMAT}
     doc.update(fields)
-    return json.dumps(doc, default=_json_default)
+    return json.dumps(doc, default=json_default)
 
 
 def parse_record(text) -> Optional[dict]:
@@ -36,16 +35,6 @@ def parse_record(text) -> Optional[dict]:
     if not isinstance(doc, dict) or doc.get("format") != BAKE_RECORD_FORMAT:
         return None
     return doc
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if dataclasses.is_dataclass(o):
-        return dataclasses.asdict(o)
-    return str(o)
 
 
 def effects_to_json(effects: Iterable) -> list:

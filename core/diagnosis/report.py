@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ...solvers.registry import SOLVER_NAMES
-from ..atomic_io import OutputLock, check_writable, save_figure, write_text
+from ..atomic_io import OutputLock, check_writable, save_figure, strict_json_default, write_text
 from ..errors import UserError
 
 JSON_NAME = "diagnosis.json"
@@ -87,14 +87,6 @@ def validate_report(doc: dict) -> None:
     for e in h:
         if not (isinstance(e.get("effects"), list) and isinstance(e.get("rmse"), (int, float))):
             raise UserError("diagnosis report: every history entry needs 'effects' (list) and 'rmse' (number)")
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
 def _clean(x):
@@ -441,7 +433,7 @@ def _write_report(d, out: Path) -> dict:
     doc["pictures"] = list(PICTURES)
     doc["html"] = HTML_NAME
     jp = out / JSON_NAME
-    write_text(jp, json.dumps(doc, indent=2, default=_json_default, allow_nan=False) + "\n")
+    write_text(jp, json.dumps(doc, indent=2, default=strict_json_default, allow_nan=False) + "\n")
     hp = out / HTML_NAME
     write_text(hp, render_html(d, doc))
     paths["json"] = jp
