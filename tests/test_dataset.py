@@ -226,10 +226,17 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     assert in_range_fractions(perfect, t)["0"]["E"]["0.25"] == 0.0
 
     # again without the references: none reported, and the earlier run's reference predictions are gone
+    # (and with the average of two draws as one more method)
     assert cli(["evaluate", str(ck), "--data", str(built), "--out", str(out), "--device", "cpu", "--no-oracle",
-                "--simulate-objects", "0", "--no-mean-prediction"]) == 0
+                "--simulate-objects", "0", "--no-mean-prediction", "--average-samples", "2"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["references"] == {} and "--no-oracle" in report["references_skipped"]
+    assert report["table1"]["unipixie_avg2"]["objects"] == len(test_ids)
+    one = np.load(out / "predictions" / "unipixie" / f"{test_ids[0]}.npz")["log10_E"]
+    two = np.load(out / "predictions" / "unipixie_avg2" / f"{test_ids[0]}.npz")["log10_E"]
+    assert one.shape == two.shape and not np.array_equal(one, two)
+    assert cli(["evaluate", str(ck), "--data", str(built), "--out", str(out), "--device", "cpu",
+                "--average-samples", "2,0"]) == 2
     assert "oracle_appearance" not in report["table1"]
     assert not (out / "predictions" / "oracle_appearance").exists()
 

@@ -150,6 +150,30 @@ def test_prediction_shapes_determinism_and_shared_noise():
     assert only.mpm is None and only.spring_mass is None and only.lbs is not None
 
 
+def test_averaged_samples_are_the_mean_of_the_draws_in_log_units():
+    """``samples`` = K: the average, in the network's normalised units (log10 E, log10 ρ, ν, the spring stiffness'
+    log), of the K one-draw predictions with seeds seed … seed + K − 1; K = 1 is the one-draw prediction itself."""
+    p = Predictor(_model())
+    g = _grid()
+    draws = [p.predict(g, [0.0, 1.0], seed=3 + j, steps=3) for j in range(3)]
+    one = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=1)
+    assert np.array_equal(one.mpm[1].E, draws[0].mpm[1].E) and one.meta["samples"] == 1
+    avg = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=3)
+    assert avg.meta["samples"] == 3
+    for i in range(2):
+        logE = np.mean([np.log10(d.mpm[i].E) for d in draws], axis=0)
+        assert np.allclose(np.log10(avg.mpm[i].E), logE, atol=2e-4)
+        assert np.allclose(avg.mpm[i].nu, np.mean([d.mpm[i].nu for d in draws], axis=0), atol=1e-4)
+        assert np.allclose(np.log10(avg.lbs[i].E), np.mean([np.log10(d.lbs[i].E) for d in draws], axis=0), atol=2e-4)
+        k = np.mean([np.log10(d.spring_mass[i].stiffness) for d in draws], axis=0)
+        assert np.allclose(np.log10(avg.spring_mass[i].stiffness), k, atol=2e-4)
+    spread = np.std([np.log10(d.mpm[1].E) for d in draws], axis=0)
+    assert spread.max() > 1e-3                     # the draws differ, so the average is not any one of them
+    for bad in (0, -1, 2.5, True, 10 ** 6):
+        with pytest.raises(UserError, match="samples"):
+            p.predict(g, [0.5], samples=bad)
+
+
 def test_bf16_autocast_path_matches_fp32():
     """The GPU precision path (bf16 autocast, float32 ODE state), run on the CPU."""
     m = _model(patch_size=2)
@@ -279,6 +303,8 @@ def test_predict_sweep_is_cached_and_refine_matches_exact(tmp_path):
     s1 = predict_sweep(p, g, count=5, seed=2, steps=3)
     s2 = predict_sweep(p, g, count=5, seed=2, steps=3)
     assert len(calls) == 1 and np.array_equal(s1.log10_E, s2.log10_E)
+    s3 = predict_sweep(p, g, count=5, seed=2, steps=3, samples=2)       # another estimate: not the cached one
+    assert len(calls) == 2 and not np.array_equal(s3.log10_E, s1.log10_E)
     exact = s1.refine(p, g, 0.5, heads=("mpm",))  # 0.5 is a cached α: refine reproduces it
     assert np.allclose(np.log10(exact.mpm[0].E), s1.log10_E[2], atol=1e-4)
     assert s1.spring_at(0.6).stiffness.shape == (ANCHORS,) and s1.lbs_at(0.6).params.shape == (LBS_PARAM_COUNT,)
@@ -294,6 +320,12 @@ def test_predict_command(tmp_path):
                  "--device", "cpu", "--out", str(out)]) == 0
     summary = json.loads((out / "prediction.json").read_text())
     assert [e["alpha"] for e in summary["alphas"]] == [0.0, 1.0]
+    avg = tmp_path / "avg"
+    assert main(["predict", str(gpath), "--checkpoint", str(tmp_path / "ck"), "--alpha", "1", "--steps", "2",
+                 "--samples", "2", "--device", "cpu", "--out", str(avg)]) == 0
+    assert json.loads((avg / "prediction.json").read_text())["samples"] == 2
+    one_draw = MaterialField.load(out / "material_field_a1.000.npz")
+    assert not np.array_equal(MaterialField.load(avg / "material_field_a1.000.npz").E, one_draw.E)
     field = MaterialField.load(out / "material_field_a1.000.npz")
     assert field.E.shape == (int(_grid().occupancy.sum()),)
     assert (out / "spring_a0.000.npz").is_file() and (out / "lbs_a0.000.npz").is_file()

@@ -72,7 +72,10 @@ class EvalSettings:
     render_resolution: the PSNR/SSIM renders (0 frames = no renders).  mean_prediction: also evaluate
     ``unipixie_mean``, the model's one-step prediction (steps = 1: the data-predicting network's output from
     pure noise, its estimate of the conditional mean — the MSE-optimal point estimate), besides the
-    sampled ``unipixie`` (the paper's ODE sampler).  oracle: on a procedural dataset, also score the
+    sampled ``unipixie`` (the paper's ODE sampler).  average_samples: for each K, also evaluate
+    ``unipixie_avgK``, the average of K draws (seeds ``seed`` … ``seed + K − 1``, averaged in the network's
+    normalised units: :meth:`~unipixie.core.model.inference.Predictor.predict`'s ``samples``), a Monte-Carlo
+    estimate of the conditional mean.  oracle: on a procedural dataset, also score the
     reference predictors of :mod:`.oracle` (what the best possible model reaches on these labels), each
     from ``oracle_draws`` annotations drawn from the generator's priors."""
 
@@ -88,6 +91,7 @@ class EvalSettings:
     render_views: int = 2
     render_resolution: int = 128
     mean_prediction: bool = True
+    average_samples: tuple = ()
     oracle: bool = True
     oracle_draws: int = 1000
 
@@ -233,7 +237,8 @@ class Methods:
 
     def names(self) -> list:
         mean = ["unipixie_mean"] if self.model and self.settings.mean_prediction else []
-        return (["unipixie"] if self.model else []) + mean + [b.name for b in self.baselines]
+        averages = [f"unipixie_avg{k}" for k in self.settings.average_samples] if self.model else []
+        return (["unipixie"] if self.model else []) + mean + averages + [b.name for b in self.baselines]
 
     def predict_all(self, grid, alphas, heads=HEADS) -> dict:
         """method -> (arrays for the predictions file, native prediction object), runtime included."""
@@ -256,6 +261,13 @@ class Methods:
                 arrays = _unipixie_arrays(mean, alphas)
                 arrays["runtime_s"] = np.float64(time.perf_counter() - t)
                 out["unipixie_mean"] = (arrays, mean)
+            for k in s.average_samples:
+                average = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, samples=k)
+                t = time.perf_counter()
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, samples=k)
+                arrays = _unipixie_arrays(average, alphas)
+                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
+                out[f"unipixie_avg{k}"] = (arrays, average)
         for b in self.baselines:
             fields = b.predict(grid, alphas, seed=s.seed)
             t = time.perf_counter()

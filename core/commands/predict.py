@@ -32,6 +32,9 @@ def add_arguments(p):
                    help=f"comma-separated: {', '.join(SOLVER_NAMES)} (default all)")
     p.add_argument("--seed", type=seed_type, default=0, help="noise seed (same seed, same result)")
     p.add_argument("--steps", type=positive_int, default=None, help="Heun steps, 1 or more (default 15)")
+    p.add_argument("--samples", type=positive_int, default=1, metavar="K",
+                   help="average K draws (seeds SEED … SEED+K−1) in log units: the conditional mean, the least "
+                        "squared error, at K times the cost (default 1: one draw)")
     p.add_argument("--device", type=device, default="auto")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
 
@@ -78,13 +81,15 @@ def _predict(args, out, grid, predictor, heads, steps) -> int:
     with Progress(total=1.0, description="predict") as progress:
         if args.sweep is not None:
             sweep = predict_sweep(predictor, grid, count=args.sweep, seed=args.seed, heads=heads, steps=steps,
-                                  progress=progress)
+                                  progress=progress, samples=args.samples)
             path = sweep.save(out / "alpha_sweep.npz")
             print(f"wrote the {len(sweep.alphas)}-value alpha sweep to {path}")
             return 0
         alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]  # as checked
-        pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress)
+        pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress,
+                                 samples=args.samples)
     summary = {"checkpoint": predictor.checkpoint, "grid": str(args.grid), "seed": args.seed, "steps": steps,
+               "samples": args.samples,
                "seconds": pred.seconds, "device": str(predictor.device), "alphas": []}
     for i, a in enumerate(pred.alphas):
         tag = f"a{a:.3f}"

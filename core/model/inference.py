@@ -10,6 +10,12 @@ Because the noise is shared, the fields vary smoothly with α; because it comes 
 generator, the result is deterministic for a seed (and the same noise on every device).  On CUDA the
 network runs under bf16 autocast (the ODE state stays float32).
 
+``samples`` > 1 averages that many draws (seeds ``seed`` … ``seed + samples − 1``) in the network's normalised
+units — log10 E, log10 ρ, ν, the class logits, the spring stiffness' logarithm —: a Monte-Carlo estimate of the
+conditional mean, the prediction with the least expected squared error.  One draw commits each voxel to one
+reading of the object (near a part boundary, to one of the parts); the average hedges where the draws disagree,
+at ``samples`` times the cost.
+
 Returns a :class:`Prediction`: per α, a :class:`~unipixie.core.types.MaterialField` (MPM head), an
 :class:`LBSPrediction` (650 skinning parameters + E, ν per occupied voxel) and a
 :class:`SpringPrediction` (N_a stiffnesses + the softness η).
@@ -93,6 +99,17 @@ def resolve_torch_device(device: str = "auto") -> torch.device:
     if d == "cpu":
         return torch.device("cpu")
     raise UserError(f"unknown device {device!r}; use cpu, cuda, cuda:N or auto")
+
+
+MAX_SAMPLES = 64
+"""Most draws :meth:`Predictor.predict` averages (each costs a whole prediction)."""
+
+
+def check_samples(samples) -> int:
+    """``samples`` as a whole number of draws in [1, :data:`MAX_SAMPLES`]; anything else is a UserError."""
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or not 1 <= int(samples) <= MAX_SAMPLES:
+        raise UserError(f"samples must be a whole number of draws from 1 to {MAX_SAMPLES}, got {samples!r}")
+    return int(samples)
 
 
 def canonical_heads(heads) -> tuple:
@@ -247,17 +264,19 @@ class Predictor:
     # ------------------------------------------------------------------ prediction
     @torch.no_grad()
     def predict(self, grid: FeatureGrid, alphas: Sequence[float] = (0.5,), heads=HEADS, seed: int = 0,
-                steps: int = DEFAULT_STEPS, progress: Optional[Progress] = None) -> Prediction:
-        """Predict every requested head for every α in one batched pass (see module docstring)."""
+                steps: int = DEFAULT_STEPS, progress: Optional[Progress] = None, samples: int = 1) -> Prediction:
+        """Predict every requested head for every α in one batched pass (see module docstring); ``samples`` draws
+        averaged in normalised units (1: one draw)."""
         self.check_grid(grid)
         a_np = check_alphas(alphas)
         heads = canonical_heads(heads)
         if int(steps) < 1:
             raise UserError(f"steps must be >= 1, got {steps}")
+        samples = check_samples(samples)
         progress = progress or silent()
         flow_heads = [h for h in heads if h in HEADS]
         evaluations = 2 * steps - (1 if self.cfg.prediction == "data" else 0)
-        sub = progress.sub(1.0, 1 + 0.5 * evaluations * len(flow_heads), "predict")
+        sub = progress.sub(1.0, 1 + 0.5 * evaluations * len(flow_heads) * samples, "predict")
         t_start = time.perf_counter()
         m, cfg, dev = self.model, self.cfg, self.device
         A = a_np.size
@@ -272,13 +291,11 @@ class Predictor:
         times = self.times(steps)
         result = Prediction(alphas=a_np.astype(np.float64), meta={"seed": int(seed), "steps": int(steps),
                                                                   "sampler": self.sampler_id,
-                                                                  "heads": list(heads)})
+                                                                  "heads": list(heads), "samples": samples})
 
         def grid_head(head, channels, head_index):
             with self._autocast():
                 ctx = m.grid_context(head, enc)
-            noise = self._noise(seed, head_index, (N, channels))
-            x0 = layout.to_tokens(noise).expand(A, -1, -1, -1)
 
             def vel(x, t):
                 tt = torch.full((A,), t, device=dev)
@@ -287,8 +304,14 @@ class Predictor:
                 sub.step(0.5)
                 return out[..., :channels], out[..., channels:]
 
-            x1, aux = heun(vel, x0, times, last_euler=cfg.prediction == "data")
-            return layout.from_tokens_single(x1), layout.from_tokens_single(aux)  # (A, N, ch), (A, N, extra)
+            total_x, total_aux = 0.0, 0.0
+            for draw in range(samples):
+                noise = self._noise(seed + draw, head_index, (N, channels))
+                x0 = layout.to_tokens(noise).expand(A, -1, -1, -1)
+                x1, aux = heun(vel, x0, times, last_euler=cfg.prediction == "data")
+                total_x = total_x + layout.from_tokens_single(x1)
+                total_aux = total_aux + layout.from_tokens_single(aux)
+            return total_x / samples, total_aux / samples  # (A, N, ch), (A, N, extra)
 
         if "mpm" in heads:
             vals, logits = grid_head(m.mpm, len(MPM_CHANNELS), 0)
@@ -311,7 +334,6 @@ class Predictor:
         if "spring_mass" in heads:
             with self._autocast():
                 ctx = m.spring.context(enc.z)
-            x0 = self._noise(seed, 2, (1, cfg.spring_dim)).expand(A, -1)
 
             def vel(x, t):
                 tt = torch.full((A,), t, device=dev)
@@ -320,8 +342,11 @@ class Predictor:
                 sub.step(0.5)
                 return out, None
 
-            x1, _ = heun(vel, x0, times, last_euler=cfg.prediction == "data")
-            x1 = x1.cpu().numpy()
+            x1 = 0.0
+            for draw in range(samples):
+                x0 = self._noise(seed + draw, 2, (1, cfg.spring_dim)).expand(A, -1)
+                x1 = x1 + heun(vel, x0, times, last_euler=cfg.prediction == "data")[0]
+            x1 = (x1 / samples).cpu().numpy()
             k = norms["stiffness"].decode(x1[:, :-1]).astype(np.float32)
             eta = norms["softness"].decode(x1[:, -1])
             result.spring_mass = [SpringPrediction(float(a_np[i]), k[i], float(eta[i])) for i in range(A)]
@@ -349,11 +374,13 @@ def get_predictor(checkpoint=None, device: str = "auto") -> Predictor:
 
 def predict(feature_grid: FeatureGrid, alphas: Sequence[float] = (0.5,), heads=HEADS, seed: int = 0,
             checkpoint=None, device: str = "auto", steps: int = DEFAULT_STEPS,
-            progress: Optional[Progress] = None) -> Prediction:
+            progress: Optional[Progress] = None, samples: int = 1) -> Prediction:
     """Predict materials for ``feature_grid`` at every α (one batched pass, one shared noise sample).
 
     feature_grid: the model's input (:class:`~unipixie.core.types.FeatureGrid`); alphas: values in [0, 1];
     heads: any of :data:`HEADS`; seed: noise seed (same seed, same result);
-    checkpoint: checkpoint directory (default: the shipped model in ``models/default``).
+    checkpoint: checkpoint directory (default: the shipped model in ``models/default``);
+    samples: draws averaged (seeds ``seed`` … ``seed + samples − 1``; the module docstring says why).
     """
-    return get_predictor(checkpoint, device).predict(feature_grid, alphas, heads, seed, steps, progress)
+    return get_predictor(checkpoint, device).predict(feature_grid, alphas, heads, seed, steps, progress,
+                                                     samples=samples)

@@ -175,27 +175,33 @@ def sweep_alphas(count: int = DEFAULT_SWEEP_COUNT) -> np.ndarray:
     return np.linspace(0.0, 1.0, int(count))
 
 
-def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, steps: int, heads) -> str:
+def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, steps: int, heads,
+                    samples: int = 1) -> str:
+    """The cache key of a sweep; ``samples`` (draws averaged) enters only when it is not 1, so one-draw sweeps keep
+    their keys."""
+    extra = () if int(samples) == 1 else (("samples", int(samples)),)
     return content_key("alpha-sweep", predictor.key or predictor.checkpoint, grid.occupancy, grid.features,
                        grid.feature_model, grid.geometry.to_dict(), np.asarray(alphas, np.float64), int(seed), int(steps),
-                       sorted(heads), predictor.precision, predictor.sampler_id)
+                       sorted(heads), predictor.precision, predictor.sampler_id, *extra)
 
 
 def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_SWEEP_COUNT, seed: int = 0,
                   heads=HEADS, steps: int = DEFAULT_STEPS, use_cache: bool = True,
-                  progress: Optional[Progress] = None, alphas=None) -> AlphaSweep:
+                  progress: Optional[Progress] = None, alphas=None, samples: int = 1) -> AlphaSweep:
     """Predict at ``count`` evenly spaced α values — or at exactly ``alphas`` (ascending, e.g. the α values
-    of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``)."""
+    of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``); ``samples`` draws averaged
+    (:meth:`~unipixie.core.model.inference.Predictor.predict`)."""
     alphas = sweep_alphas(count) if alphas is None else np.asarray(alphas, dtype=np.float64).reshape(-1)
     path = None
     if use_cache and predictor.key:
-        path = cache_dir("alpha_sweeps") / f"{sweep_cache_key(predictor, grid, alphas, seed, steps, heads)}.npz"
+        key = sweep_cache_key(predictor, grid, alphas, seed, steps, heads, samples)
+        path = cache_dir("alpha_sweeps") / f"{key}.npz"
         if path.is_file():
             try:
                 return AlphaSweep.load(path)
             except UserError:
                 path.unlink(missing_ok=True)
-    pred = predictor.predict(grid, alphas, heads=heads, seed=seed, steps=steps, progress=progress)
+    pred = predictor.predict(grid, alphas, heads=heads, seed=seed, steps=steps, progress=progress, samples=samples)
     sweep = AlphaSweep.from_prediction(pred, grid)
     sweep.meta.update({"checkpoint": predictor.checkpoint, "seconds": pred.seconds})
     if path is not None:

@@ -34,6 +34,9 @@ def add_arguments(p):
     p.add_argument("--render-views", type=_common.positive_int, default=2, help="views per rendered frame (default 2)")
     p.add_argument("--no-mean-prediction", action="store_true",
                    help="do not also evaluate 'unipixie_mean' (the model's one-step conditional-mean prediction)")
+    p.add_argument("--average-samples", default="", metavar="K[,K...]",
+                   help="also evaluate 'unipixie_avgK': the average of K draws of the model (the Monte-Carlo "
+                        "conditional mean), for each K given (e.g. 2,4,8; default none)")
     p.add_argument("--render-resolution", type=_common.positive_int, default=128, help="render size (default 128)")
     p.add_argument("--no-oracle", action="store_true",
                    help="do not score the reference predictors (procedural datasets only: the best any model can "
@@ -54,6 +57,15 @@ def run(args) -> int:
         raise UserError(f"--alphas {args.alphas!r}: expected numbers separated by commas") from None
     if any(not 0.0 <= a <= 1.0 for a in alphas):
         raise UserError(f"--alphas {args.alphas!r}: values must lie in [0, 1]")
+    from ...core.model.inference import check_samples
+
+    try:
+        average_samples = tuple(dict.fromkeys(int(k) for k in args.average_samples.split(",") if k.strip()))
+    except ValueError:
+        raise UserError(f"--average-samples {args.average_samples!r}: expected whole numbers separated by commas") \
+            from None
+    for k in average_samples:
+        check_samples(k)
     checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise UserError(f"checkpoint {checkpoint}: directory not found")
@@ -70,7 +82,8 @@ def run(args) -> int:
                             seed=args.seed, max_objects=args.max_objects, simulate_objects=args.simulate_objects,
                             fitters=not args.no_fitters, render_frames=args.render_frames,
                             render_views=args.render_views, render_resolution=args.render_resolution,
-                            mean_prediction=not args.no_mean_prediction, oracle=not args.no_oracle,
+                            mean_prediction=not args.no_mean_prediction, average_samples=average_samples,
+                            oracle=not args.no_oracle,
                             oracle_draws=args.oracle_draws)
     from ..dataset import DatasetDir
 
