@@ -63,6 +63,7 @@ class _Tuning:
     graph_substeps: int
     block_dim: int
     sort_interval: int
+    rigid_once: bool
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -178,6 +179,8 @@ class MPMSimulation(Simulation):
         self._wp = wp
         self._k = mpm_kernels
         self._code = (sampled.material + np.where(held, int(mpm_kernels.HELD_FLAG), 0)).astype(np.int32)
+        rigid_class = np.array([c.held_fixed for c in materials.MATERIAL_CLASSES])
+        self._rigid_particles = int(np.count_nonzero(held & rigid_class[sampled.material]))
         wp.load_module(mpm_kernels, device=self.device)
         tuning = self._tuning()
         if tuning.scatter != "atomic" or tuning.split_g2p:
@@ -272,7 +275,8 @@ class MPMSimulation(Simulation):
         total = nodes * buf.envs
         buf.commands.clear()  # launches and graphs hold the old grid
         buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
-                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
+                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev),
+                    "rigid": wp.zeros(total, dtype=float, device=dev)}
         buf.grid_dims = grow
 
     # ------------------------------------------------------------------ running
@@ -395,6 +399,7 @@ class MPMSimulation(Simulation):
                 self._place_grid(buf, lo, hi, f)
                 if s.sort_particles:
                     self._sort(buf, E, N)
+                self._rigid_mass(buf, E, N, tuning)
                 self._step_frame(buf, E, N, M_alloc, done, done + chunk, has_ground, ground_z, progress)
                 done += chunk
             if M:
@@ -478,7 +483,7 @@ class MPMSimulation(Simulation):
         scatter = s.p2g_scatter if s.p2g_scatter != "auto" else ("warp" if cuda else "atomic")
         split = s.split_g2p if s.split_g2p is not None else cuda
         graphs = s.graph_substeps if s.graph_substeps is not None else (CUDA_GRAPH_SUBSTEPS if cuda else 0)
-        return _Tuning(scatter, bool(split), int(graphs), int(s.block_dim), int(s.sort_interval))
+        return _Tuning(scatter, bool(split), int(graphs), int(s.block_dim), int(s.sort_interval), bool(s.rigid_mass_once))
 
     def _cuda_kernels(self):
         """The GPU-tuned kernel module (``mpm_kernels_cuda``), loaded for this device on first use."""
@@ -515,6 +520,23 @@ class MPMSimulation(Simulation):
         vmax = np.sqrt(stats[:, :, 0].max(1)).astype(np.float64)
         cmax = np.sqrt(stats[:, :, 1].max(1)).astype(np.float64)
         return lo, hi, vmax, cmax
+
+    def _rigid_mass(self, buf: _Buffers, E: int, N: int, tuning: _Tuning) -> None:
+        """The grid's mass from held particles of rigid classes for the current grid placement
+        (``mpm_kernels.rigid_mass``; setting ``rigid_mass_once``), or zero where P2G scatters them every substep."""
+        G = buf.grid
+        G["rigid"].zero_()
+        if not (tuning.rigid_once and self._rigid_particles):
+            return
+        wp, k = self._wp, self._k
+        P = buf.particles
+        start = self._mark()
+        self._frame_launch(buf, ("rigid_mass", buf.parity, buf.grid_dims), lambda: wp.launch(
+            k.rigid_mass, dim=E * N, device=self.device, record_cmd=True,
+            inputs=[P["x"], P["mass"], P["code"], self._laws, buf.env["origin"], N, int(np.prod(buf.grid_dims)),
+                    wp.vec3i(*buf.grid_dims), 1.0 / self.dx],
+            outputs=[G["rigid"]]))
+        self._record("rigid_mass", start)
 
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
         """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
@@ -608,7 +630,7 @@ class MPMSimulation(Simulation):
     def _commands(self, buf: _Buffers, E: int, N: int, M_alloc: int, has_ground: int, ground_z: float,
                   tuning: _Tuning) -> _StepCommands:
         """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
-        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim)
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once)
         cmds = buf.commands.get(key)
         if cmds is not None:
             return cmds
@@ -628,12 +650,13 @@ class MPMSimulation(Simulation):
                                               P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
                                               Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
                                               Env["ground"], has_ground, ground_z, self.contact_radius,
-                                              self.contact_area, n, N, nodes, dims, dx, inv_dx, 0],
+                                              self.contact_area, n, N, nodes, dims, dx, inv_dx,
+                                              int(tuning.rigid_once), 0],
                                       outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
                     ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
                                                       Env["drag"], buf.step_base, nodes, 0, Env["ground"],
-                                                      G["contact"]],
+                                                      G["contact"], G["rigid"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
             kc = self._cuda_kernels()
@@ -706,7 +729,7 @@ class MPMSimulation(Simulation):
         """One run with every kernel timed (CUDA events on a GPU, clock readings on the CPU; graphs are off).
 
         Returns seconds per section summed over the run — ``p2g``, ``grid_update``, ``g2p``, ``g2p_tracked``
-        (when split), ``sort``, ``frame_stats`` — plus ``wall`` (the whole run), ``substeps`` and
+        (when split), ``sort``, ``rigid_mass``, ``frame_stats`` — plus ``wall`` (the whole run), ``substeps`` and
         ``particle_substeps`` (of environment 0).
         """
         terms = self.terms_for(effects)
