@@ -66,28 +66,6 @@ class _Tuning:
     rigid_once: bool
 
 
-# ------------------------------------------------------------------------------------------ helpers
-def _class_law_table(wp, kernels, device):
-    """One ClassLaw per registry class (ids are array indices)."""
-    laws = []
-    for c in materials.MATERIAL_CLASSES:
-        law = kernels.ClassLaw()
-        law.elastic = materials.ELASTICITY_MODELS.index(c.elasticity)
-        law.plastic = materials.PLASTICITY_MODELS.index(c.plasticity)
-        law.held = int(c.held_fixed)
-        p = dict(c.params)
-        law.yield_stress = float(p.get("yield_stress", math.inf))
-        law.softening = float(p.get("softening", 0.0))
-        phi = math.radians(float(p.get("friction_angle_deg", 0.0)))
-        law.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * math.sin(phi) / (3.0 - math.sin(phi))
-        law.theta_c = float(p.get("theta_c", 0.0))
-        law.theta_s = float(p.get("theta_s", 0.0))
-        law.hardening = float(p.get("hardening", 0.0))
-        law.max_hardening = float(p.get("max_hardening", math.inf))
-        laws.append(law)
-    return wp.array(laws, dtype=kernels.ClassLaw, device=device)
-
-
 @dataclass
 class _Buffers:
     """Device arrays of one batch size (reused between runs)."""
@@ -173,6 +151,7 @@ class MPMSimulation(Simulation):
         if progress:
             progress.set_status("MPM: compiling kernels")
         from . import mpm_kernels
+        from .constitutive import class_law_table
         from .warp_runtime import init_warp
 
         wp = init_warp()
@@ -185,7 +164,7 @@ class MPMSimulation(Simulation):
         tuning = self._tuning()
         if tuning.scatter != "atomic" or tuning.split_g2p:
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
-        self._laws = _class_law_table(wp, mpm_kernels, self.device)
+        self._laws = class_law_table(self.device)
 
     @property
     def particle_count(self) -> int:
@@ -522,21 +501,16 @@ class MPMSimulation(Simulation):
         return lo, hi, vmax, cmax
 
     def _rigid_mass(self, buf: _Buffers, E: int, N: int, tuning: _Tuning) -> None:
-        """The grid's mass from held particles of rigid classes for the current grid placement
-        (``mpm_kernels.rigid_mass``; setting ``rigid_mass_once``), or zero where P2G scatters them every substep."""
-        G = buf.grid
+        """The held rigid particles' grid mass at this grid placement (``mpm_kernels.rigid_mass``), else zeros."""
+        G, P, wp = buf.grid, buf.particles, self._wp
         G["rigid"].zero_()
-        if not (tuning.rigid_once and self._rigid_particles):
-            return
-        wp, k = self._wp, self._k
-        P = buf.particles
-        start = self._mark()
-        self._frame_launch(buf, ("rigid_mass", buf.parity, buf.grid_dims), lambda: wp.launch(
-            k.rigid_mass, dim=E * N, device=self.device, record_cmd=True,
-            inputs=[P["x"], P["mass"], P["code"], self._laws, buf.env["origin"], N, int(np.prod(buf.grid_dims)),
-                    wp.vec3i(*buf.grid_dims), 1.0 / self.dx],
-            outputs=[G["rigid"]]))
-        self._record("rigid_mass", start)
+        if tuning.rigid_once and self._rigid_particles:
+            start = self._mark()
+            self._frame_launch(buf, ("rigid_mass", buf.parity, buf.grid_dims), lambda: wp.launch(
+                self._k.rigid_mass, dim=E * N, device=self.device, record_cmd=True, outputs=[G["rigid"]],
+                inputs=[P["x"], P["mass"], P["code"], self._laws, buf.env["origin"], N, int(np.prod(buf.grid_dims)),
+                        wp.vec3i(*buf.grid_dims), 1.0 / self.dx]))
+            self._record("rigid_mass", start)
 
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
         """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
