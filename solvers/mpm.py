@@ -82,7 +82,8 @@ class _Buffers:
     lost: object
     step_base: object  # (1,) int32: substep index a captured graph of substeps starts from
     grid: dict = field(default_factory=dict)
-    grid_dims: tuple = (0, 0, 0)
+    grid_dims: tuple = (0, 0, 0)  # the grid's nodes per axis (per environment)
+    grid_alloc: tuple = (0, 0, 0)  # the arrays' room: grid_dims may be smaller on the CPU (see _ensure_grid)
     initial: Optional[dict] = None  # the initial particle state (base material), uploaded once
     parity: int = 0  # which of the two particle buffers is current (flips with every sort)
     commands: dict = field(default_factory=dict)  # _StepCommands per (parity, kernels, ...); cleared with the grid
@@ -243,20 +244,26 @@ class MPMSimulation(Simulation):
                 P["lam"][e * N:(e + 1) * N].assign(lam_e.astype(np.float32))
 
     def _ensure_grid(self, buf: _Buffers, dims: tuple) -> None:
-        if all(a >= b for a, b in zip(buf.grid_dims, dims)) and buf.grid:
-            return
-        wp, dev = self._wp, self.device
-        grow = tuple(int(max(a, math.ceil(b * 1.25))) if b > a else int(a) for a, b in zip(buf.grid_dims, dims))
-        nodes = int(np.prod(grow))
-        if nodes > self.settings.max_grid_nodes or nodes * buf.envs >= 2 ** 31:
-            raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
-                            f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
-        total = nodes * buf.envs
-        buf.commands.clear()  # launches and graphs hold the old grid
-        buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
-                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev),
-                    "rigid": wp.zeros(total, dtype=float, device=dev)}
-        buf.grid_dims = grow
+        """A grid of at least ``dims`` nodes.  The arrays grow by a quarter when too small; captured graphs (CUDA) use
+        them whole, substeps launched from Python (the CPU) exactly ``dims``, so that no substep visits nodes the
+        material cannot reach (a CPU thread per node)."""
+        exact = self._run_tuning.graph_substeps == 0
+        if not (all(a >= b for a, b in zip(buf.grid_alloc, dims)) and buf.grid):
+            wp, dev = self._wp, self.device
+            grow = tuple(int(max(a, math.ceil(b * 1.25))) if b > a else int(a) for a, b in zip(buf.grid_alloc, dims))
+            nodes = int(np.prod(grow))
+            if nodes > self.settings.max_grid_nodes or nodes * buf.envs >= 2 ** 31:
+                raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
+                                f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
+            total = nodes * buf.envs
+            buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
+                        "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev),
+                        "rigid": wp.zeros(total, dtype=float, device=dev)}
+            buf.grid_alloc = buf.grid_dims = grow
+            buf.commands.clear()  # launches and graphs hold the old grid
+        if exact and buf.grid_dims != tuple(dims):
+            buf.grid_dims = tuple(int(d) for d in dims)  # the accumulators are all zero between substeps
+            buf.commands.clear()
 
     # ------------------------------------------------------------------ running
     def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Optional[Progress],
