@@ -601,9 +601,10 @@ class MPMSimulation(Simulation):
                     checked = step
             return
         wp.launch(k.set_step, dim=1, inputs=[buf.step_base, 0], device=dev)
+        slots = [(name, cmd, [a.label for a in cmd.kernel.adj.args].index("substep")) for name, cmd in cmds.launches]
         for step in range(first, stop):
-            for name, cmd in cmds.launches:
-                cmd.set_param_by_name("substep", step)
+            for name, cmd, slot in slots:
+                cmd.set_param_at_index_from_ctype(slot, step)  # the int32 in place (by name: ~12 µs a call)
                 self._launch(name, cmd)
             if progress is not None and step % 256 == 255:
                 progress.check()
