@@ -102,9 +102,9 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  sheet_size=(480, 240))
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
 """The demo's bakes start in this order (they run side by side on the CPU cores).  Measured on 2 idle cores in the
-full demo (2026-11-27): spring-mass 52 s (the bake default of 2048 anchors), each MPM plant 56–63 s, the LBS duck
-10 s — two at a time, the bakes end after about 120 s in any order that starts the spring-mass or an MPM plant
-first."""
+full demo (2026-11-27, fifth session): spring-mass 53 s (the bake default of 2048 anchors), each MPM plant 39–45 s,
+the LBS duck 11 s — two at a time, the bakes end after about 97 s in any order that starts the spring-mass or an
+MPM plant first."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -488,7 +488,7 @@ def bake_workers(device: str, jobs: int) -> int:
 
 class KernelWarmUp:
     """Compile the solvers' Warp kernels in a worker thread while the demo builds, renders and predicts (an empty
-    kernel cache costs about 30 s of CPU compiling, forward kernels only, otherwise paid inside the first bake of each
+    kernel cache costs about 20 s of CPU compiling, forward kernels only, otherwise paid inside the first bake of each
     solver).  It runs a two-frame simulation of a small sphere with each solver through the public solver API, so
     exactly the kernels a bake launches get compiled; :meth:`ready` holds a bake back until its solver's kernels
     are done.  A failure here is ignored (the bake compiles then)."""
