@@ -261,6 +261,7 @@ class MPMSimulation(Simulation):
                         "rigid": wp.zeros(total, dtype=float, device=dev)}
             buf.grid_alloc = buf.grid_dims = grow
             buf.commands.clear()  # launches and graphs hold the old grid
+            buf.frame_launches.clear()  # so may recorded per-frame launches (rigid_mass) of the same dims
         if exact and buf.grid_dims != tuple(dims):
             buf.grid_dims = tuple(int(d) for d in dims)  # the accumulators are all zero between substeps
             buf.commands.clear()
