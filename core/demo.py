@@ -102,9 +102,9 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  sheet_size=(480, 240))
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
 """The demo's bakes start in this order (they run side by side on the CPU cores).  Measured on 2 idle cores in the
-full demo (2026-11-27): spring-mass 52 s (the bake default of 2048 anchors), each MPM plant 56–63 s, the LBS duck
-10 s — two at a time, the bakes end after about 120 s in any order that starts the spring-mass or an MPM plant
-first."""
+full demo (2026-11-27, fifth session): spring-mass 43–53 s (the bake default of 2048 anchors), each MPM plant
+38–45 s, the LBS duck 11–14 s — two at a time, the bakes end after 93–97 s in any order that starts the spring-mass
+or an MPM plant first."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
@@ -488,13 +488,18 @@ def bake_workers(device: str, jobs: int) -> int:
 
 class KernelWarmUp:
     """Compile the solvers' Warp kernels in a worker thread while the demo builds, renders and predicts (an empty
-    kernel cache costs about 30 s of CPU compiling, forward kernels only, otherwise paid inside the first bake of each
+    kernel cache costs about 20 s of CPU compiling, forward kernels only, otherwise paid inside the first bake of each
     solver).  It runs a two-frame simulation of a small sphere with each solver through the public solver API, so
     exactly the kernels a bake launches get compiled; :meth:`ready` holds a bake back until its solver's kernels
     are done.  A failure here is ignored (the bake compiles then)."""
 
     SOLVERS = BAKE_ORDER
     """In the order of the demo's bakes."""
+    SETTINGS = {"mpm": {"cells_across": 4}, "spring_mass": {"anchors": 64},
+                "lbs": {"cubature_points": 60, "mass_samples": 500, "collision_points": 32}}
+    """The smallest runs that launch the solvers' kernels: Warp compiles a kernel module whole whatever the
+    resolution, and at the solvers' bake defaults the sphere was 15 s of MPM (120 000 particles), 4 s of spring-mass
+    and 2.6 s of LBS CPU on the 2-core machine, spent before the bakes could start."""
 
     def __init__(self, device: str = "cpu"):
         import threading
@@ -524,7 +529,8 @@ class KernelWarmUp:
             for solver in self.SOLVERS:
                 t0 = time.perf_counter()
                 api.simulate(solver, body, HomogeneousMaterial(E=1e5, nu=0.3, density=1000.0, material="jelly"),
-                             Scenario(ground_height=0.0), np.linspace(0.0, 1.0 / 24.0, 2), [], device=self.device)
+                             Scenario(ground_height=0.0), np.linspace(0.0, 1.0 / 24.0, 2), [], device=self.device,
+                             settings=self.SETTINGS.get(solver))
                 self.seconds[solver] = time.perf_counter() - t0
                 self._done[solver].set()
         except Exception as exc:          # noqa: BLE001 - only a head start; the bakes compile what is missing

@@ -12,6 +12,8 @@ Units: stresses in Pa (Kirchhoff stress τ = J σ), Lamé parameters μ, λ in P
 
 # No ``from __future__ import annotations``: :func:`_von_mises_hencky` gives Warp its argument types at run time.
 
+import math
+
 import warp as wp
 
 from . import materials
@@ -51,6 +53,27 @@ class ClassLaw:
     theta_s: float
     hardening: float
     max_hardening: float
+
+
+def class_law_table(device):
+    """One ClassLaw per registry class (ids are array indices), as a Warp array on ``device``."""
+    laws = []
+    for c in materials.MATERIAL_CLASSES:
+        law = ClassLaw()
+        law.elastic = materials.ELASTICITY_MODELS.index(c.elasticity)
+        law.plastic = materials.PLASTICITY_MODELS.index(c.plasticity)
+        law.held = int(c.held_fixed)
+        p = dict(c.params)
+        law.yield_stress = float(p.get("yield_stress", math.inf))
+        law.softening = float(p.get("softening", 0.0))
+        phi = math.radians(float(p.get("friction_angle_deg", 0.0)))
+        law.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * math.sin(phi) / (3.0 - math.sin(phi))
+        law.theta_c = float(p.get("theta_c", 0.0))
+        law.theta_s = float(p.get("theta_s", 0.0))
+        law.hardening = float(p.get("hardening", 0.0))
+        law.max_hardening = float(p.get("max_hardening", math.inf))
+        laws.append(law)
+    return wp.array(laws, dtype=ClassLaw, device=device)
 
 
 

@@ -63,28 +63,7 @@ class _Tuning:
     graph_substeps: int
     block_dim: int
     sort_interval: int
-
-
-# ------------------------------------------------------------------------------------------ helpers
-def _class_law_table(wp, kernels, device):
-    """One ClassLaw per registry class (ids are array indices)."""
-    laws = []
-    for c in materials.MATERIAL_CLASSES:
-        law = kernels.ClassLaw()
-        law.elastic = materials.ELASTICITY_MODELS.index(c.elasticity)
-        law.plastic = materials.PLASTICITY_MODELS.index(c.plasticity)
-        law.held = int(c.held_fixed)
-        p = dict(c.params)
-        law.yield_stress = float(p.get("yield_stress", math.inf))
-        law.softening = float(p.get("softening", 0.0))
-        phi = math.radians(float(p.get("friction_angle_deg", 0.0)))
-        law.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * math.sin(phi) / (3.0 - math.sin(phi))
-        law.theta_c = float(p.get("theta_c", 0.0))
-        law.theta_s = float(p.get("theta_s", 0.0))
-        law.hardening = float(p.get("hardening", 0.0))
-        law.max_hardening = float(p.get("max_hardening", math.inf))
-        laws.append(law)
-    return wp.array(laws, dtype=kernels.ClassLaw, device=device)
+    rigid_once: bool
 
 
 @dataclass
@@ -103,7 +82,8 @@ class _Buffers:
     lost: object
     step_base: object  # (1,) int32: substep index a captured graph of substeps starts from
     grid: dict = field(default_factory=dict)
-    grid_dims: tuple = (0, 0, 0)
+    grid_dims: tuple = (0, 0, 0)  # the grid's nodes per axis (per environment)
+    grid_alloc: tuple = (0, 0, 0)  # the arrays' room: grid_dims may be smaller on the CPU (see _ensure_grid)
     initial: Optional[dict] = None  # the initial particle state (base material), uploaded once
     parity: int = 0  # which of the two particle buffers is current (flips with every sort)
     commands: dict = field(default_factory=dict)  # _StepCommands per (parity, kernels, ...); cleared with the grid
@@ -172,17 +152,20 @@ class MPMSimulation(Simulation):
         if progress:
             progress.set_status("MPM: compiling kernels")
         from . import mpm_kernels
+        from .constitutive import class_law_table
         from .warp_runtime import init_warp
 
         wp = init_warp()
         self._wp = wp
         self._k = mpm_kernels
         self._code = (sampled.material + np.where(held, int(mpm_kernels.HELD_FLAG), 0)).astype(np.int32)
+        rigid_class = np.array([c.held_fixed for c in materials.MATERIAL_CLASSES])
+        self._rigid_particles = int(np.count_nonzero(held & rigid_class[sampled.material]))
         wp.load_module(mpm_kernels, device=self.device)
         tuning = self._tuning()
         if tuning.scatter != "atomic" or tuning.split_g2p:
             self._cuda_kernels()  # compile the GPU-tuned kernels now rather than in the first run
-        self._laws = _class_law_table(wp, mpm_kernels, self.device)
+        self._laws = class_law_table(self.device)
 
     @property
     def particle_count(self) -> int:
@@ -261,19 +244,27 @@ class MPMSimulation(Simulation):
                 P["lam"][e * N:(e + 1) * N].assign(lam_e.astype(np.float32))
 
     def _ensure_grid(self, buf: _Buffers, dims: tuple) -> None:
-        if all(a >= b for a, b in zip(buf.grid_dims, dims)) and buf.grid:
-            return
-        wp, dev = self._wp, self.device
-        grow = tuple(int(max(a, math.ceil(b * 1.25))) if b > a else int(a) for a, b in zip(buf.grid_dims, dims))
-        nodes = int(np.prod(grow))
-        if nodes > self.settings.max_grid_nodes or nodes * buf.envs >= 2 ** 31:
-            raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
-                            f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
-        total = nodes * buf.envs
-        buf.commands.clear()  # launches and graphs hold the old grid
-        buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
-                    "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev)}
-        buf.grid_dims = grow
+        """A grid of at least ``dims`` nodes.  The arrays grow by a quarter when too small; captured graphs (CUDA) use
+        them whole, substeps launched from Python (the CPU) exactly ``dims``, so that no substep visits nodes the
+        material cannot reach (a CPU thread per node)."""
+        exact = self._run_tuning.graph_substeps == 0
+        if not (all(a >= b for a, b in zip(buf.grid_alloc, dims)) and buf.grid):
+            wp, dev = self._wp, self.device
+            grow = tuple(int(max(a, math.ceil(b * 1.25))) if b > a else int(a) for a, b in zip(buf.grid_alloc, dims))
+            nodes = int(np.prod(grow))
+            if nodes > self.settings.max_grid_nodes or nodes * buf.envs >= 2 ** 31:
+                raise UserError(f"the grid would need {nodes:,} nodes per environment ({grow[0]}x{grow[1]}x{grow[2]}), "
+                                f"more than settings max_grid_nodes = {self.settings.max_grid_nodes:,}")
+            total = nodes * buf.envs
+            buf.grid = {"mv": wp.zeros(total, dtype=wp.vec4, device=dev), "held": wp.zeros(total, dtype=float, device=dev),
+                        "contact": wp.zeros(total, dtype=float, device=dev), "v": wp.zeros(total, dtype=wp.vec4, device=dev),
+                        "rigid": wp.zeros(total, dtype=float, device=dev)}
+            buf.grid_alloc = buf.grid_dims = grow
+            buf.commands.clear()  # launches and graphs hold the old grid
+            buf.frame_launches.clear()  # so may recorded per-frame launches (rigid_mass) of the same dims
+        if exact and buf.grid_dims != tuple(dims):
+            buf.grid_dims = tuple(int(d) for d in dims)  # the accumulators are all zero between substeps
+            buf.commands.clear()
 
     # ------------------------------------------------------------------ running
     def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Optional[Progress],
@@ -395,6 +386,7 @@ class MPMSimulation(Simulation):
                 self._place_grid(buf, lo, hi, f)
                 if s.sort_particles:
                     self._sort(buf, E, N)
+                self._rigid_mass(buf, E, N, tuning)
                 self._step_frame(buf, E, N, M_alloc, done, done + chunk, has_ground, ground_z, progress)
                 done += chunk
             if M:
@@ -478,7 +470,7 @@ class MPMSimulation(Simulation):
         scatter = s.p2g_scatter if s.p2g_scatter != "auto" else ("warp" if cuda else "atomic")
         split = s.split_g2p if s.split_g2p is not None else cuda
         graphs = s.graph_substeps if s.graph_substeps is not None else (CUDA_GRAPH_SUBSTEPS if cuda else 0)
-        return _Tuning(scatter, bool(split), int(graphs), int(s.block_dim), int(s.sort_interval))
+        return _Tuning(scatter, bool(split), int(graphs), int(s.block_dim), int(s.sort_interval), bool(s.rigid_mass_once))
 
     def _cuda_kernels(self):
         """The GPU-tuned kernel module (``mpm_kernels_cuda``), loaded for this device on first use."""
@@ -515,6 +507,18 @@ class MPMSimulation(Simulation):
         vmax = np.sqrt(stats[:, :, 0].max(1)).astype(np.float64)
         cmax = np.sqrt(stats[:, :, 1].max(1)).astype(np.float64)
         return lo, hi, vmax, cmax
+
+    def _rigid_mass(self, buf: _Buffers, E: int, N: int, tuning: _Tuning) -> None:
+        """The held rigid particles' grid mass at this grid placement (``mpm_kernels.rigid_mass``), else zeros."""
+        G, P, wp = buf.grid, buf.particles, self._wp
+        G["rigid"].zero_()
+        if tuning.rigid_once and self._rigid_particles:
+            start = self._mark()
+            self._frame_launch(buf, ("rigid_mass", buf.parity, buf.grid_dims), lambda: wp.launch(
+                self._k.rigid_mass, dim=E * N, device=self.device, record_cmd=True, outputs=[G["rigid"]],
+                inputs=[P["x"], P["mass"], P["code"], self._laws, buf.env["origin"], N, int(np.prod(buf.grid_dims)),
+                        wp.vec3i(*buf.grid_dims), 1.0 / self.dx]))
+            self._record("rigid_mass", start)
 
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
         """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
@@ -598,9 +602,10 @@ class MPMSimulation(Simulation):
                     checked = step
             return
         wp.launch(k.set_step, dim=1, inputs=[buf.step_base, 0], device=dev)
+        slots = [(name, cmd, [a.label for a in cmd.kernel.adj.args].index("substep")) for name, cmd in cmds.launches]
         for step in range(first, stop):
-            for name, cmd in cmds.launches:
-                cmd.set_param_by_name("substep", step)
+            for name, cmd, slot in slots:
+                cmd.set_param_at_index_from_ctype(slot, step)  # the int32 in place (by name: ~12 µs a call)
                 self._launch(name, cmd)
             if progress is not None and step % 256 == 255:
                 progress.check()
@@ -608,7 +613,7 @@ class MPMSimulation(Simulation):
     def _commands(self, buf: _Buffers, E: int, N: int, M_alloc: int, has_ground: int, ground_z: float,
                   tuning: _Tuning) -> _StepCommands:
         """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
-        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim)
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once)
         cmds = buf.commands.get(key)
         if cmds is not None:
             return cmds
@@ -628,12 +633,13 @@ class MPMSimulation(Simulation):
                                               P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
                                               Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
                                               Env["ground"], has_ground, ground_z, self.contact_radius,
-                                              self.contact_area, n, N, nodes, dims, dx, inv_dx, 0],
+                                              self.contact_area, n, N, nodes, dims, dx, inv_dx,
+                                              int(tuning.rigid_once), 0],
                                       outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
                     ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
                                                       Env["drag"], buf.step_base, nodes, 0, Env["ground"],
-                                                      G["contact"]],
+                                                      G["contact"], G["rigid"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
             kc = self._cuda_kernels()
@@ -706,7 +712,7 @@ class MPMSimulation(Simulation):
         """One run with every kernel timed (CUDA events on a GPU, clock readings on the CPU; graphs are off).
 
         Returns seconds per section summed over the run — ``p2g``, ``grid_update``, ``g2p``, ``g2p_tracked``
-        (when split), ``sort``, ``frame_stats`` — plus ``wall`` (the whole run), ``substeps`` and
+        (when split), ``sort``, ``rigid_mass``, ``frame_stats`` — plus ``wall`` (the whole run), ``substeps`` and
         ``particle_substeps`` (of environment 0).
         """
         terms = self.terms_for(effects)

@@ -19,7 +19,8 @@ contact impulse on the particle (:func:`particle_ground_impulse`) and the scatte
 momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the elastic
 fixed-corotated law only), :func:`grid_update` (forces, drag, the clamp; clears the
 accumulators for the next substep) and :func:`g2p` (gather, advection; also moves the tracked
-points).  Environments whose frame needs fewer substeps than the launch count skip
+points).  Held particles of a rigid class (a clamped pot) never move and send only their mass: :func:`rigid_mass`
+scatters it once per grid placement and P2G skips them (setting ``rigid_mass_once``).  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
 separate runs.  The substep index is the launch parameter ``substep`` plus the device counter
 ``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
@@ -56,7 +57,7 @@ The node plane on the face of a clamp box gets about half its mass from held mat
 plane outside about 5 %: a quarter fixes the first and frees the second."""
 
 TRACKED_FIT_REGULARISATION = wp.constant(1.0e-3)
-"""Ridge term (× total weight × dx²) of the affine velocity fit at tracked points."""
+"""Ridge term (× total weight, in cells²: × dx² in m²) of the affine velocity fit at tracked points."""
 RIGID_BETA2 = wp.constant(RIGID_CONTACT_BETA["mpm"] ** 2)
 """β² of MPM's rigid floor (:data:`.contact.RIGID_CONTACT_BETA`)."""
 SAMPLE_IMPLICIT = wp.constant(SAMPLE_CONTACT_IMPLICIT["mpm"])
@@ -208,10 +209,13 @@ def _make_p2g(general: bool):
             env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
             contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
-            substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
+            rigid_static: int, substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
             grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
         """Deformation update, plasticity, stress, the ground's contact impulse and the fused scatter of mass and
-        momentum (one atomic per node; the contact impulse also to ``grid_contact``, N·s, for friction)."""
+        momentum (one atomic per node; the contact impulse also to ``grid_contact``, N·s, for friction).
+
+        ``rigid_static`` = 1: held particles of a rigid class are skipped; their mass is on the grid already
+        (:func:`rigid_mass`, once per grid placement)."""
         p = wp.tid()
         if p >= n_particles:  # padding of a launch rounded up to whole warps
             return
@@ -232,6 +236,8 @@ def _make_p2g(general: bool):
         c = code[p]
         held = c >= HELD_FLAG
         law = laws[c % HELD_FLAG]
+        if held and law.held != 0 and rigid_static != 0:
+            return
         m = mass[p]
         Cp = C[p]
         tau = wp.mat33(0.0)
@@ -273,15 +279,53 @@ p2g_elastic = _make_p2g(False)
 
 
 @wp.kernel
+def rigid_mass(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), code: wp.array(dtype=wp.int32),
+               laws: wp.array(dtype=ClassLaw), env_origin: wp.array(dtype=wp.vec3), n_per_env: int,
+               nodes_per_env: int, dims: wp.vec3i, inv_dx: float, grid_rigid: wp.array(dtype=float)):
+    """The mass (kg) that the held particles of rigid classes (``stationary``) give each node, scattered once per
+    grid placement: they never move, carry no stress and send no momentum, so every substep's P2G would scatter the
+    same masses (P2G with ``rigid_static`` skips them; :func:`grid_update` adds ``grid_rigid`` to the node's mass
+    and to its held mass).  A particle off the grid is left to P2G, which counts it as lost."""
+    p = wp.tid()
+    c = code[p]
+    if c < HELD_FLAG:
+        return
+    if laws[c % HELD_FLAG].held == 0:
+        return
+    xp = x[p]
+    if not wp.isfinite(xp):
+        return
+    origin = env_origin[p / n_per_env]
+    base = stencil_base(xp, origin, inv_dx)
+    if not stencil_inside(base, dims):
+        return
+    w = bspline_weights((xp - origin) * inv_dx - base)
+    m = mass[p]
+    row0 = (p / n_per_env) * nodes_per_env
+    ib = int(base[0])
+    jb = int(base[1])
+    kb = int(base[2])
+    for i in range(3):
+        wi = w[i, 0]
+        for j in range(3):
+            wij = wi * w[j, 1]
+            row = row0 + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+            for k in range(3):
+                wp.atomic_add(grid_rigid, row + k, (wij * w[k, 2]) * m)
+
+
+@wp.kernel
 def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
                 env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
                 env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
                 step_base: wp.array(dtype=wp.int32), nodes_per_env: int, substep: int,
                 env_ground: wp.array(dtype=wp.vec3), grid_contact: wp.array(dtype=float),
-                grid_v: wp.array(dtype=wp.vec4)):
+                grid_rigid: wp.array(dtype=float), grid_v: wp.array(dtype=wp.vec4)):
     """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, and Coulomb friction with
     the ground's normal impulse that P2G gathered at the node (``grid_contact``, N·s): the tangential velocity
     loses at most μ × that impulse / the node's mass (the ground's normal push acts on the particles, in P2G).
+    ``grid_rigid``: the node's mass from held rigid particles (:func:`rigid_mass`; zero where P2G scattered them),
+    added to its mass and held mass.
 
     Writes (velocity, mass) to ``grid_v`` and clears the accumulators for the next substep.
     """
@@ -290,7 +334,8 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
     if substep + step_base[0] >= env_steps[env]:
         return
     mv = grid_mv[n]
-    m = mv[3]
+    rigid = grid_rigid[n]
+    m = mv[3] + rigid
     if m <= 0.0:
         grid_v[n] = wp.vec4(0.0)
         return
@@ -301,7 +346,7 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
         vel = vel * wp.exp(-drag[0] * dt)
     if drag[1] > 0.0:  # quadratic drag -k |v| v, implicit in |v| (unconditionally stable)
         vel = vel / (1.0 + drag[1] * wp.length(vel) * dt)
-    if grid_held[n] >= HELD_MASS_FRACTION * m:
+    if grid_held[n] + rigid >= HELD_MASS_FRACTION * m:
         vel = wp.vec3(0.0)
     jn = grid_contact[n]
     if jn > 0.0:
@@ -419,40 +464,71 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
         particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, rigid_floor(has_ground, env_ground[env]),
                         ground_z, x, v, C)
         return
-    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities
+    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities, in stencil
+    # coordinates e = (i, j, k) - 1 (cells; the point is at fx - 1).  The weighted moments are summed a stencil
+    # row (i, j) at a time: with e in {-1, 0, 1} a row needs three mass sums and two momentum sums, and the
+    # second moments follow from them (the fit is translation-invariant, so this is the centred fit of
+    # velocities against node offsets, written with far fewer products)
     W = float(0.0)
-    sd = wp.vec3(0.0)
-    sv = wp.vec3(0.0)
-    Mdd = wp.mat33(0.0)
-    Mvd = wp.mat33(0.0)
+    s1 = wp.vec3(0.0)  # sum wm e
+    sxx = float(0.0)  # sum wm e e^T, its six entries
+    syy = float(0.0)
+    szz = float(0.0)
+    sxy = float(0.0)
+    sxz = float(0.0)
+    syz = float(0.0)
+    sv = wp.vec3(0.0)  # sum wm v
+    svx = wp.vec3(0.0)  # sum wm v e^T, its columns
+    svy = wp.vec3(0.0)
+    svz = wp.vec3(0.0)
     vlo = wp.vec3(3.0e38)
     vhi = wp.vec3(-3.0e38)
     for i in range(3):
+        ei = float(i) - 1.0
         for j in range(3):
+            ej = float(j) - 1.0
+            wij = w[i, 0] * w[j, 1]
+            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+            a0 = float(0.0)  # the row's sum wm, sum wm e_z, sum wm e_z^2
+            a1 = float(0.0)
+            a2 = float(0.0)
+            r0 = wp.vec3(0.0)  # the row's sum wm v, sum wm v e_z
+            r1 = wp.vec3(0.0)
             for k in range(3):
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                node = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + (kb + k)
-                gv = grid_v[node]
+                ek = float(k) - 1.0
+                gv = grid_v[row + k]
                 vi = wp.vec3(gv[0], gv[1], gv[2])
-                wm = weight * gv[3]
+                wm = (wij * w[k, 2]) * gv[3]  # 0 at an empty node (its velocity is 0 too)
+                wv = wm * vi
+                a0 = a0 + wm
+                a1 = a1 + ek * wm
+                a2 = a2 + (ek * ek) * wm
+                r0 = r0 + wv
+                r1 = r1 + ek * wv
                 if wm > 0.0:
-                    W = W + wm
-                    sd = sd + wm * dpos
-                    sv = sv + wm * vi
-                    Mdd = Mdd + wm * wp.outer(dpos, dpos)
-                    Mvd = Mvd + wm * wp.outer(vi, dpos)
                     vlo = wp.min(vlo, vi)
                     vhi = wp.max(vhi, vi)
+            W = W + a0
+            s1 = s1 + wp.vec3(ei * a0, ej * a0, a1)
+            sxx = sxx + (ei * ei) * a0
+            syy = syy + (ej * ej) * a0
+            szz = szz + a2
+            sxy = sxy + (ei * ej) * a0
+            sxz = sxz + ei * a1
+            syz = syz + ej * a1
+            sv = sv + r0
+            svx = svx + ei * r0
+            svy = svy + ej * r0
+            svz = svz + r1
     t = tid - n_particles
     vt = tv[t]
     if W > 0.0:
-        dbar = sd / W
+        ebar = s1 / W
         vbar = sv / W
-        cov = Mdd - W * wp.outer(dbar, dbar) + wp.identity(n=3, dtype=float) * (
-            TRACKED_FIT_REGULARISATION * W * dx * dx)
-        grad = (Mvd - W * wp.outer(vbar, dbar)) @ wp.inverse(cov)
-        fit = vbar - grad @ dbar  # the fitted field at the tracked point (offset 0)
+        cov = wp.mat33(sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz) - W * wp.outer(ebar, ebar) + wp.identity(
+            n=3, dtype=float) * (TRACKED_FIT_REGULARISATION * W)
+        grad = (wp.matrix_from_cols(svx, svy, svz) - W * wp.outer(vbar, ebar)) @ wp.inverse(cov)  # m/s per cell
+        fit = vbar + grad @ (fx - wp.vec3(1.0) - ebar)  # the fitted field at the tracked point
         # guard against ill-conditioned fits (few massive nodes, e.g. in a thin film): stay within the node
         # velocities' range widened by that range on each side (a single node gives its own velocity)
         spread = vhi - vlo

@@ -214,7 +214,7 @@ def _make_p2g(general: bool, scatter: str):
             env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
             contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
-            substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
+            rigid_static: int, substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
             grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
         p = wp.tid()
         env = int(0)
@@ -233,6 +233,11 @@ def _make_p2g(general: bool, scatter: str):
                 wp.atomic_add(lost, env, 1)
                 active = False
                 base = wp.vec3(0.0)
+            elif rigid_static != 0:  # a held particle of a rigid class: its mass is on the grid already
+                c0 = code[p]
+                if c0 >= HELD_FLAG and laws[c0 % HELD_FLAG].held != 0:
+                    active = False
+                    base = wp.vec3(0.0)
         ib = int(base[0])
         jb = int(base[1])
         kb = int(base[2])

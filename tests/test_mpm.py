@@ -116,6 +116,54 @@ def test_voxel_field_with_background_and_stationary_parts():
     assert np.all(np.isfinite(traj.positions))
 
 
+def test_rigid_mass_scattered_once_matches_every_substep():
+    """The held rigid particles' mass goes to the grid once per grid placement (setting ``rigid_mass_once``, the
+    default) or in every substep's P2G: the same trajectory up to float summation order, with the jelly swinging
+    on a stationary base; the GPU-tuned scatter, which skips them the same way, gives it bitwise."""
+    geo = GridGeometry(resolution=4, origin=[0.0, 0.0, 0.0], voxel_size=0.025)
+    idx = np.argwhere(np.ones((4, 4, 4), bool))
+    cls = np.where(idx[:, 2] == 0, materials.get("stationary").id, materials.get("jelly").id)
+    K = len(idx)
+    field = MaterialField(geo, np.ones((4, 4, 4), bool), np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
+    points = lattice((8, 8, 8), 0.0125)
+    body = Body(points=points, point_volume=0.0125 ** 3, tracked_points=points[::7])
+    sc = Scenario(gravity=[0, 0, -G], ground_height=0.0, initial_velocity=[0.5, 0.0, 0.0])
+    sim = mpm.prepare(body, field, sc, np.linspace(0.0, 0.1, 5))
+    assert sim._rigid_particles == np.count_nonzero(sim.material.material == materials.get("stationary").id) == 128
+    assert sim.settings.rigid_mass_once
+    once = sim.run([])
+    profile = sim.profile([])
+    assert profile["rigid_mass"] > 0
+    sim.settings = mpm.MPMSettings(rigid_mass_once=False)
+    every = sim.run([])
+    assert once.meta["substeps"] == every.meta["substeps"]
+    moved = np.abs(every.positions[-1] - every.positions[0]).max()
+    assert moved > 1e-3  # the jelly swings
+    np.testing.assert_allclose(once.positions, every.positions, rtol=0, atol=1e-5 * moved)
+    sim.settings = mpm.MPMSettings(p2g_scatter="warp")
+    np.testing.assert_array_equal(sim.run([]).positions, once.positions)
+
+
+def test_rerun_with_rigid_parts_after_the_grid_grew_is_the_same():
+    """A re-run starts on the grid arrays the first run grew (a jelly block flying away from a stationary one); the
+    rigid mass, recorded per grid size, must land in the new arrays, not in the ones the first chunk used."""
+    geo = GridGeometry(resolution=4, origin=[0.0, 0.0, 0.0], voxel_size=0.025)
+    idx = np.argwhere(np.ones((4, 4, 4), bool))
+    cls = np.where(idx[:, 0] == 0, materials.get("stationary").id, materials.get("jelly").id)
+    K = len(idx)
+    field = MaterialField(geo, np.ones((4, 4, 4), bool), np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
+    points = lattice((8, 8, 8), 0.0125)
+    points = points[(points[:, 0] < 0.025) | (points[:, 0] > 0.075)]  # two blocks, 5 cm apart
+    sc = Scenario(gravity=[0, 0, -G], ground_height=None, initial_velocity=[2.0, 0.0, 1.0])
+    sim = mpm.prepare(Body(points=points, point_volume=0.0125 ** 3), field, sc, np.linspace(0.0, 0.15, 4))
+    first = sim.run([])
+    start = sim._buffer_sets[1].grid_alloc
+    assert sim._rigid_particles == 128
+    assert np.abs(first.positions[-1] - first.positions[0]).max() > 0.2  # the jelly flew off; the grid grew
+    np.testing.assert_array_equal(sim.run([]).positions, first.positions)
+    assert sim._buffer_sets[1].grid_alloc == start
+
+
 def test_clamped_tracked_points_do_not_move():
     frames = np.linspace(0.0, 0.2, 5)
     tracked = np.array([[0.001, 0.02, 0.02], [0.039, 0.02, 0.02]])
