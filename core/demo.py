@@ -508,11 +508,19 @@ class KernelWarmUp:
         self.seconds: dict = {}
         self.error = ""
         self._done = {s: threading.Event() for s in self.SOLVERS}
-        self._thread = threading.Thread(target=self._main, name="unipixie-warp-warm-up", daemon=True)
+        self._worker = None
 
     def start(self) -> "KernelWarmUp":
-        self._thread.start()
+        from .jobs import start_worker
+
+        self._worker = start_worker(self._main, name="unipixie-warp-warm-up")
         return self
+
+    def wait(self, timeout=None) -> bool:
+        """Wait (at most ``timeout`` s) for the warm-up to end; True when it has."""
+        from .jobs import wait_workers
+
+        return self._worker is not None and wait_workers([self._worker], timeout)
 
     def _main(self):
         try:

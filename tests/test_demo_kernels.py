@@ -75,7 +75,7 @@ def test_the_kernel_warm_up_runs_tiny_simulations_of_every_solver(monkeypatch):
 
     monkeypatch.setattr(api, "simulate", recording)
     warm_up = KernelWarmUp("cpu").start()
-    warm_up._thread.join()
+    warm_up.wait()
     assert warm_up.error == "" and set(warm_up.seconds) == set(KernelWarmUp.SOLVERS) == set(runs)
     for name in ("mpm_kernels", "spring_mass_kernels", "lbs_kernels"):
         assert wp.get_module(f"unipixie.solvers.{name}").execs, f"{name} was not compiled"
