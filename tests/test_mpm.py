@@ -116,15 +116,21 @@ def test_voxel_field_with_background_and_stationary_parts():
     assert np.all(np.isfinite(traj.positions))
 
 
+def _jelly_on_stationary_layer(axis: int) -> MaterialField:
+    """A 4³ field of 2.5 cm voxels: jelly (E 100 kPa, ν 0.3, 1000 kg/m³) whose first voxel layer along ``axis`` is
+    the stationary class."""
+    geo = GridGeometry(resolution=4, origin=[0.0, 0.0, 0.0], voxel_size=0.025)
+    idx = np.argwhere(np.ones((4, 4, 4), bool))
+    cls = np.where(idx[:, axis] == 0, materials.get("stationary").id, materials.get("jelly").id)
+    K = len(idx)
+    return MaterialField(geo, np.ones((4, 4, 4), bool), np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
+
+
 def test_rigid_mass_scattered_once_matches_every_substep():
     """The held rigid particles' mass goes to the grid once per grid placement (setting ``rigid_mass_once``, the
     default) or in every substep's P2G: the same trajectory up to float summation order, with the jelly swinging
     on a stationary base; the GPU-tuned scatter, which skips them the same way, gives it bitwise."""
-    geo = GridGeometry(resolution=4, origin=[0.0, 0.0, 0.0], voxel_size=0.025)
-    idx = np.argwhere(np.ones((4, 4, 4), bool))
-    cls = np.where(idx[:, 2] == 0, materials.get("stationary").id, materials.get("jelly").id)
-    K = len(idx)
-    field = MaterialField(geo, np.ones((4, 4, 4), bool), np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
+    field = _jelly_on_stationary_layer(axis=2)
     points = lattice((8, 8, 8), 0.0125)
     body = Body(points=points, point_volume=0.0125 ** 3, tracked_points=points[::7])
     sc = Scenario(gravity=[0, 0, -G], ground_height=0.0, initial_velocity=[0.5, 0.0, 0.0])
@@ -147,11 +153,7 @@ def test_rigid_mass_scattered_once_matches_every_substep():
 def test_rerun_with_rigid_parts_after_the_grid_grew_is_the_same():
     """A re-run starts on the grid arrays the first run grew (a jelly block flying away from a stationary one); the
     rigid mass, recorded per grid size, must land in the new arrays, not in the ones the first chunk used."""
-    geo = GridGeometry(resolution=4, origin=[0.0, 0.0, 0.0], voxel_size=0.025)
-    idx = np.argwhere(np.ones((4, 4, 4), bool))
-    cls = np.where(idx[:, 0] == 0, materials.get("stationary").id, materials.get("jelly").id)
-    K = len(idx)
-    field = MaterialField(geo, np.ones((4, 4, 4), bool), np.full(K, 1e5), np.full(K, 0.3), np.full(K, 1000.0), cls)
+    field = _jelly_on_stationary_layer(axis=0)
     points = lattice((8, 8, 8), 0.0125)
     points = points[(points[:, 0] < 0.025) | (points[:, 0] > 0.075)]  # two blocks, 5 cm apart
     sc = Scenario(gravity=[0, 0, -G], ground_height=None, initial_velocity=[2.0, 0.0, 1.0])
