@@ -3,8 +3,8 @@ runs the simulation in a worker thread (:func:`unipixie.core.jobs.worker_job`) a
 ``(fraction, status)`` for the add-on's modal operator (closing it cancels and removes anything half-written);
 :func:`bake_object` runs it to the end (Python API, command line).
 
-Uses bpy, :mod:`unipixie.core.bake`, :mod:`unipixie.core.jobs` and :mod:`.reading`, :mod:`.options`, :mod:`.scenario`, :mod:`.removal`,
-:mod:`.result`.
+Uses bpy, :mod:`unipixie.core.bake`, :mod:`unipixie.core.jobs` and :mod:`.reading`, :mod:`.options`,
+:mod:`.scenario`, :mod:`.removal`, :mod:`.result`.
 """
 
 from __future__ import annotations
