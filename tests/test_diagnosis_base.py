@@ -90,6 +90,46 @@ def test_floor_refuses_effects_that_only_imitate_the_discretisation_error():
     assert again.significant
 
 
+class _TwoResolutions:
+    """A stand-in diagnosis problem whose coarse model is 30 % stiffer than its finer one (what the base fit can
+    take up) and whose finer one also sits ``offset`` m higher (what it cannot).  A model run is a bar's points
+    swinging at ω ∝ √(E/ρ scale)."""
+
+    def __init__(self, offset: float, stiffer: float = 1.3):
+        self.sim = SimpleNamespace(settings=SpringMassSettings(anchors=96), fine=False)
+        self.fine_sim = SimpleNamespace(settings=None, fine=True)
+        t = np.linspace(0.0, 0.6, 31)[:, None]
+        self.t, self.x = t, np.linspace(0.05, 0.4, 12)[None, :]
+        self.offset, self.stiffer = offset, stiffer
+        self.obs_all = self.obs = np.ones((31, 12), dtype=bool)
+        self.runs = 0
+
+    def trajectory(self, scale: float, fine: bool) -> np.ndarray:
+        omega = 20.0 * math.sqrt(scale * (1.0 if fine else self.stiffer))
+        z = 0.3 * self.x ** 2 * np.sin(omega * self.t) + (self.offset if fine else 0.0)
+        return np.stack(np.broadcast_arrays(self.x + 0 * self.t, 0 * z, z), axis=-1)
+
+    def run(self, effect_lists, sim=None):
+        self.runs += len(effect_lists)
+        return [self.trajectory(effects[0], bool(getattr(sim or self.sim, "fine", False))) for effects in effect_lists]
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.004])
+def test_the_floor_is_what_refinement_moves_beyond_a_different_e(offset):
+    """Refinement that only softens the solid is taken up by the base fit's E/ρ: the finer model's scale is refitted
+    (here × 1.3) before the two are compared, and only what remains (an offset) is a floor."""
+    P = _TwoResolutions(offset)
+    check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                             remaining_runs=10 ** 6, budget_s=0.0)
+    assert check.floor_before_refit > 0.01  # the same E: a large difference
+    assert check.finer_E_factor == pytest.approx(1.3, rel=0.01)
+    assert check.floor == pytest.approx(offset, abs=2e-4)
+    assert check.enforce_floor is (offset > 0) and use is None
+    assert np.allclose(check.difference.reshape(-1, 3)[:, 2], offset, atol=2e-3)
+    assert check.to_dict()["finer_E_factor"] == pytest.approx(1.3, rel=0.01)
+    assert P.runs <= 2 + len(resolution.REFIT_FACTORS) + resolution.REFIT_PARABOLAS
+
+
 @pytest.mark.slow
 def test_drop_on_a_damped_floor_fits_the_contact_in_the_base(tmp_path):
     """A cube dropped onto a damped, yielding floor (spring-mass made, 48 anchors): the base fit adopts the floor

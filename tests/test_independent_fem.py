@@ -204,6 +204,14 @@ def test_validation_cases_are_well_formed():
     for c in cases:
         mesh, sc = c.placed()
         c.effect_dicts(mesh.nodes)
+    # issue 18's referee matrix: both contact laws, a floor that keeps energy, σ 0.5 and 1 mm, five or more cases
+    # with nothing hidden (drops that bounce among them), and drops, throws, slides and clamped bars
+    assert {c.contact_law for c in cases} == set(fem.CONTACT_LAWS)
+    assert any(c.contact_law == "penalty" and c.contact_damping_ratio < 0.5 for c in cases)
+    assert {c.noise for c in cases} == {0.0005, 0.001}
+    nothing = [c for c in cases if not c.effects]
+    assert len(nothing) >= 5 and sum(c.scenario == "drop" for c in nothing) >= 3
+    assert {c.scenario for c in cases} == {"drop", "throw", "slide", "clamped"}
     with pytest.raises(UserError, match="unknown validation case"):
         validate.select_cases("none_throw,bogus")
     assert [c.name for c in validate.select_cases("quick")] == list(validate.QUICK)
@@ -299,6 +307,23 @@ def test_hard_contact_friction_stops_a_slide():
     cx = np.array([_com(model, xi)[0] for xi in x])
     assert cx[-1] - cx[0] == pytest.approx(v0 ** 2 / (2 * mu * g), rel=0.10)
     assert np.min(x[:, :, 2]) >= -1e-12
+
+
+def test_a_case_takes_its_contact_law_to_the_referee():
+    """A validation case's contact law reaches the referee and its measurement file says which law made it; under
+    the hard law no node is below the ground at any frame."""
+    import json
+
+    case = fem.Case("hard_tiny", scenario="drop", velocity=(0.0, 0.0, 0.0), height=0.02, spacing=0.1, duration=0.2,
+                    fps=50.0, noise=0.0, occlusion=0.0, contact_law="hard")
+    arrays = fem.make_case(case)
+    truth = json.loads(str(arrays["independent_truth"]))
+    assert truth["contact_law"] == "hard" and "hard ground" in truth["simulator"]
+    assert np.nanmin(arrays["positions"][..., 2]) >= -1e-9
+    soft = json.loads(str(fem.make_case(fem.Case("soft_tiny", scenario="drop", spacing=0.1, duration=0.04,
+                                                 fps=50.0, noise=0.0, occlusion=0.0,
+                                                 contact_damping_ratio=0.1))["independent_truth"]))
+    assert soft["contact_law"] == "penalty" and soft["contact_damping_ratio"] == 0.1
 
 
 def test_unknown_contact_law_is_a_user_error():

@@ -62,7 +62,7 @@ from ..progress import Progress, silent
 from . import sanity
 from . import verdict as verdict_mod
 from .base_fit import base_material_check, find_predictive_window, fit_base
-from .candidates import DEFAULT_REGION_CLUSTERS, fit_candidates, not_applicable_effects, plan_for
+from .candidates import DEFAULT_REGION_CLUSTERS, Plan, fit_candidates, not_applicable_effects, plan_for
 from .checks import check_leading, half_step_simulation, judge
 from .compare import compare, estimate_noise, noise_rmse
 from .contact_fit import fit_base_contact
@@ -225,28 +225,32 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     # ---- 2b. is the fitted base model resolved? (resolution.py) ---------------------------------------
     progress.set_status("re-running the fitted base model finer (resolution check)")
     resolution, finer_sim = check_resolution(
-        P, P.model_effects(ref.scale, ref.effects, ref.fixed),
+        P, lambda scale: P.model_effects(scale, ref.effects, ref.fixed), ref.scale,
         lambda s: api.prepare(solver, body, material.to_spec(measurement.rest), measurement.scenario, frame_times,
                               device=device, settings=s, progress=None),
         sigma, int(progress.total) - P.evaluations, budget_s=resolution_budget_s, say=say)
     if finer_sim is not None:  # from here on the finer model, its E/ρ refitted
         P.sim, settings = finer_sim, finer_sim.settings
-        bf, full_residual = fit_base(P, base_fit_param, lm_iterations, progress, start=np.array([math.log(ref.scale)]))
+        bf, full_residual = fit_base(P, base_fit_param, lm_iterations, progress,
+                                     start=np.array([math.log(ref.scale * resolution.finer_E_factor)]))
         ref = Reference(float(math.exp(bf.u[0])), [], P.sse(full_residual), full_residual[:P.size],
                         list(effects_on), e_width)
 
     # ---- 2c. ground contact, part of the base (contact_fit.py) --------------------------------------
     contact = fit_base_contact(P, measurement, material, ref.scale, e_width, ref.sse, names, lm_iterations, progress,
                                say)
-    if contact.adopted:
-        ref = Reference(contact.E_scale, [], contact.sse, contact.residual, list(effects_on), e_width)
+    if contact.adopted:  # the floor is one of the reference's effects: refitted with every candidate
+        ref = Reference(contact.E_scale, [contact.effect], contact.sse, contact.residual, list(effects_on), e_width)
 
     # ---- 3.-6. rounds: candidates (candidates.py), their significance (checks.py) ---------------------
     rounds: list[Round] = []
+    ref_base = ref
     history = [{"effects": [e.name for e in effects_on], "rmse": float(baseline.rmse), "E_scale": 1.0}]
     history_positions = [base_pos]
     added: list[fx.Effect] = []
     plans = {n: plan_for(n, sc, material.mean_E()) for n in names}
+    if contact.adopted:
+        plans[contact.effect.name] = Plan([], contact.scales, contact.bounds)
     not_applicable = not_applicable_effects(names, measurement, sigma)
     round_no = 0
 
@@ -257,7 +261,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     while True:
         round_no += 1
         say(f"{2 + round_no}. round {round_no}: fitting {len(names) - len(not_applicable)} candidate effects "
-            f"against {'the refitted base' if not ref.effects else ' + '.join(e.name for e in ref.effects)} "
+            f"against {'the refitted base' if not added else ' + '.join(e.name for e in added)}"
+            f"{' (its ground contact refitted with each)' if contact.adopted else ''} "
             f"(RMSE {1e3 * math.sqrt(ref.sse / P.n_obs):.2f} mm)")
         todo = [name for name in names if name not in not_applicable
                 # already added: its parameters are refitted with every later candidate
@@ -314,6 +319,16 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         if len(added) >= max_additions:
             say(f"   stopping after {len(added)} addition(s) (max_additions)")
             break
+
+    # ---- 6b. an honest verdict: no least-bad effect named (verdict.py) ------------------------------------
+    # judged on every observed sample, as the verdict is (beyond a predictive window too: a model that is right
+    # does not leave the measurement far behind there either)
+    if added and not picks and history[-1]["rmse"] > verdict_mod.FAR_ABOVE_NOISE * noise_rmse(sigma):
+        why = verdict_mod.retract(rounds, history[-1]["rmse"], noise_rmse(sigma))
+        say("   " + why)
+        warnings.append(why)
+        ref, added = ref_base, []
+        del history[1:], history_positions[1:]
 
     # ---- 7. base material on its own (base_fit.py) ------------------------------------------------
     progress.set_status("checking the base material")

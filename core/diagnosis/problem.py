@@ -37,7 +37,6 @@ class Problem:
         self.gate = BatchGate(self._run_now)
         self.sim = sim
         self.fixed = list(fixed)
-        self.base_effects: list = []  # part of every model run: the base's fitted ground contact (contact_fit.py)
         self.progress = progress
         self.max_batch = max(1, int(max_batch))
         self.measured = np.asarray(measurement.positions, dtype=np.float64)
@@ -78,7 +77,7 @@ class Problem:
 
     # effects for one model ---------------------------------------------------------------
     def model_effects(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> list:
-        out = list(self.base_effects) + list(self.fixed if fixed is None else fixed) + list(effects)
+        out = list(self.fixed if fixed is None else fixed) + list(effects)
         if abs(scale - 1.0) > 1e-12:
             out.append(fx.make("stiffness_region", factor=float(scale), region={"box": self.everything_box}))
         return out

@@ -25,9 +25,22 @@ from __future__ import annotations
 import math
 from typing import Optional, Sequence
 
+import numpy as np
+
 EXPLAINED_WITHIN = 2.0
 """The model explains a measurement when its best RMSE is at most this many times the noise floor
 (the validation's pass criterion, docs/diagnosis.md)."""
+
+FAR_ABOVE_NOISE = 10.0
+"""An effect is not named when, with it and every later addition, the model's RMSE (over every observed sample, as
+the verdict judges it) stays more than this many times the noise floor: it is then only the least bad of the registry, and the verdict says that
+no effect explains the difference (issue 18).  An order of magnitude: a base model close to the truth but not
+identical to it leaves a few noise floors (measured on the independent referee: 1–3× after the right effect, the
+spring-mass network's plastic bar 3×); a missing physical law that no effect describes leaves tens (a bouncing
+drop on a floor that keeps energy: 24×)."""
+
+DIRECTION_SHARE = 0.6
+"""The remaining error is said to lie along one axis when that axis holds at least this share of it."""
 
 CODES = ("explained", "effect_found", "effect_found_partly", "not_explained")
 
@@ -79,6 +92,26 @@ def decide(best_rmse: float, noise_rmse: float, identified: Optional[str], *, ad
             "explained_within": EXPLAINED_WITHIN}
 
 
+def retract(rounds: Sequence, rmse: float, noise_rmse: float) -> str:
+    """Withdraw the effects a diagnosis added by ranking because its model stays far above the noise (in place on
+    ``rounds``: no round identifies or adds anything; every candidate that was significant is no longer, with the
+    reason).  rmse: the final model's RMSE over every observed sample (m); noise_rmse: the noise floor (m).
+    Returns the sentence for the log and the report's warnings."""
+    times = rmse / noise_rmse if noise_rmse > 0 else math.inf
+    named = [r.added.name for r in rounds if getattr(r, "added", None) is not None]
+    reason = (f"with it and every later addition the model stays {times:.3g}× above the noise floor (more than "
+              f"{FAR_ABOVE_NOISE:g}×): it is the least bad effect of the registry, not the missing one")
+    for r in rounds:
+        r.identified, r.added, r.added_by = None, None, ""
+        for c in r.candidates:
+            if c.significant:
+                c.significant = False
+                c.reasons.append(reason)
+    return (f"not named: {' + '.join(named)} (the best the registry offers) leaves {_mm(rmse)}, {times:.3g}× "
+            f"the noise floor of {_mm(noise_rmse)}: no effect of the registry explains the difference; the base "
+            "model itself differs (see where and when below)")
+
+
 def where_it_differs(comparison, contact_times: Sequence[float] = ()) -> str:
     """``"in region 2 (around [x, y, z] m), at t = 0.41-0.43 s (after ground contact)"`` from a
     :class:`~unipixie.core.diagnosis.compare.Comparison` of the best model (empty if it says nothing)."""
@@ -94,6 +127,13 @@ def where_it_differs(comparison, contact_times: Sequence[float] = ()) -> str:
         if contact_times and any(t >= min(contact_times) for t in wt):
             when += " (after ground contact)"
         parts.append(when)
+    axes = getattr(comparison, "axis_rmse", None)
+    if axes is not None and np.all(np.isfinite(axes)) and float(np.sum(np.square(axes))) > 0:
+        share = np.square(axes) / float(np.sum(np.square(axes)))
+        k = int(np.argmax(share))
+        if share[k] >= DIRECTION_SHARE:
+            parts.append(f"mostly along {'xyz'[k]}{' (vertical)' if k == 2 else ''} "
+                         f"({100 * share[k]:.0f} % of the squared error)")
     return ", ".join(parts)
 
 

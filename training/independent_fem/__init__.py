@@ -635,7 +635,8 @@ class Case:
     spacing: the mesh's cell size (m); the default 0.025 m puts 8 cells across the cube (an even count, so the
     mirrored mesh keeps the cube's symmetries: :func:`box_tet_mesh`).
     effects: spec effect strings / dicts.  stated_E_scale: the file states E / this (the model believes a
-    material that is off by this factor).
+    material that is off by this factor).  contact_law / contact_damping_ratio: the ground's law and the penalty
+    law's ζ (:class:`FEMSettings`; the defaults are its defaults).
     """
 
     name: str
@@ -655,6 +656,12 @@ class Case:
     spin: Optional[Sequence[float]] = None
     height: float = 0.1
     seed: int = 0
+    contact_law: str = "penalty"
+    contact_damping_ratio: float = 1.0
+
+    def fem_settings(self) -> FEMSettings:
+        """The referee's settings for this case (its contact law; the rest at their defaults)."""
+        return FEMSettings(contact_law=self.contact_law, contact_damping_ratio=self.contact_damping_ratio)
 
     def mesh(self) -> TetMesh:
         ext = {"cube": (0.2, 0.2, 0.2), "bar": (0.4, 0.08, 0.08), "plate": (0.3, 0.3, 0.05)}
@@ -724,7 +731,7 @@ def make_case(case: Case, settings: Optional[FEMSettings] = None) -> dict:
     mesh, sc = case.placed()
     effects = case.effect_dicts(mesh.nodes)
     truth_material = {"E": case.E, "nu": case.nu, "density": case.density}
-    model = FEMModel(mesh, truth_material, sc, effects, settings)
+    model = FEMModel(mesh, truth_material, sc, effects, settings or case.fem_settings())
     times = np.arange(int(round(case.duration * case.fps)) + 1) / case.fps
     surf = mesh.surface_nodes
     remap = -np.ones(len(mesh.nodes), dtype=np.int64)
@@ -735,7 +742,8 @@ def make_case(case: Case, settings: Optional[FEMSettings] = None) -> dict:
     stated = dict(truth_material, E=case.E / case.stated_E_scale)
     law = model.settings.contact_law
     truth = {"simulator": f"unipixie.training.independent_fem (linear tets, fixed-corotated, RK4, {law} ground)",
-             "case": case.name, "effects": effects, "true_E": case.E, "stated_E": stated["E"],
+             "case": case.name, "contact_law": law,
+             "contact_damping_ratio": float(model.settings.contact_damping_ratio), "effects": effects, "true_E": case.E, "stated_E": stated["E"],
              "true_E_over_stated": case.stated_E_scale, "noise_sigma": case.noise, "occlusion": case.occlusion,
              "nodes": int(len(mesh.nodes)), "tets": int(len(mesh.tets)), "dt": float(model.dt_max),
              "steps": int(model.steps_taken), "wall_s": wall}
