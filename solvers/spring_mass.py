@@ -493,7 +493,7 @@ class SpringMassSimulation(Simulation):
         return {"kinetic": kin, "elastic": ela, "potential": pot, "total": kin + ela + pot}
 
     def star_volume_ratio(self, positions: np.ndarray) -> np.ndarray:
-        """(N,) J_i = det F_i of every anchor's spring star (least-squares F, as :func:`.spring_mass_kernels.star_stress`)
+        """(N,) J_i = det F_i of every anchor's spring star (least-squares F, as :func:`.spring_mass_kernels.spring_star_pass`)
         at anchor positions (N, 3) m."""
         net = self.network
         x = np.asarray(positions, np.float64)

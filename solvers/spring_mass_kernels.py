@@ -63,14 +63,15 @@ def spring_force(e: int, k: int, d: wp.vec3, dv: wp.vec3, rest: wp.array2d(dtype
 
 @wp.func
 def gathered_force(e: int, i: int, first: int, stride: int, start: wp.array(dtype=int), nbr: wp.array(dtype=int),
-                   force: wp.array2d(dtype=wp.vec3), rest_vec: wp.array(dtype=wp.vec3), stress: wp.array2d(dtype=wp.mat33), has_volume: int):
+                   force: wp.array2d(dtype=wp.vec3), rest_vec: wp.array(dtype=wp.vec3),
+                   stress: wp.array2d(dtype=wp.mat33), has_volume: int):
     """Sum (N) of the spring forces on anchor ``i`` over its half-edges start[i] + first, + stride, ... (all of them
     with first 0, stride 1; one lane's share in a block of lanes): force[e, h], which :func:`spring_star_pass`
-    computed at the end that owns the spring (from the other end, the exact negative of what this end would compute);
-    plus, when
-    has_volume != 0, the volumetric term's force Σ_h (A_i + A_j) d0_h (A = :func:`spring_star_pass`'s stress[e, ·],
-    N/m; d0_h = rest_vec[h] = X_j − X_i, m): the gradient of the anchor's own star energy and of every star it
-    belongs to (the half-edges are symmetric: j is in i's star exactly when i is in j's)."""
+    computed at the end that owns the spring (from the other end: the exact negative of what this end would
+    compute); plus, when has_volume != 0, the volumetric term's force Σ_h (A_i + A_j) d0_h
+    (A = :func:`spring_star_pass`'s stress[e, ·], N/m; d0_h = rest_vec[h] = X_j − X_i, m): the gradient of the
+    anchor's own star energy and of every star it belongs to (the half-edges are symmetric: j is in i's star
+    exactly when i is in j's)."""
     f = wp.vec3(0.0, 0.0, 0.0)
     d0_sum = wp.vec3(0.0, 0.0, 0.0)
     h = start[i] + first
@@ -104,8 +105,8 @@ def star_deformation(e: int, i: int, x: wp.array2d(dtype=wp.vec3), x_rest: wp.ar
 @wp.kernel
 def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
                      nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3), slot_start: wp.array(dtype=int),
-                     slot_nbr: wp.array(dtype=int), slot_he: wp.array2d(dtype=int), rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
-                     dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
+                     slot_nbr: wp.array(dtype=int), slot_he: wp.array2d(dtype=int), rest: wp.array2d(dtype=float),
+                     kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
                      gram_inv: wp.array(dtype=wp.mat33), vol_stiffness: wp.array2d(dtype=float),
                      force: wp.array2d(dtype=wp.vec3), stress: wp.array2d(dtype=wp.mat33), damped: int,
                      plastic: int):
@@ -126,8 +127,8 @@ def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
       (momentum).
 
     rest, kappa, dashpot, yield_strain: (E, S) per slot (m, N/m, N·s/m, ≥ BIG: elastic); damped, plastic: whether
-    any spring has a dashpot, a yield strain (:func:`spring_force`); force: (E, H) N;
-    stress: (E, N) N/m."""
+    any spring has a dashpot, a yield strain (:func:`spring_force`); force: (E, H) N per half-edge (the force on its
+    anchor); stress: (E, N) N/m."""
     e, i, lane = wp.tid()
     xi = x[e, i]
     vi = v[e, i]
