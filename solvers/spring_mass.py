@@ -230,6 +230,9 @@ class SpringMassSimulation(Simulation):
         order = np.argsort(src, kind="stable")
         self._he_src, self._he_dst, self._he_spring = src[order], dst[order], sid[order]
         self._he_start = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=n))]).astype(np.int32)
+        self._slots = self._spring_slots()
+        x32 = net.anchors.astype(np.float32)
+        self._he_rest_vec = x32[self._he_dst] - x32[self._he_src]  # float32 as the kernels' X_j − X_i
         # rotation fit (Gram matrix inverse per anchor)
         d0 = net.anchors[self._he_dst] - net.anchors[self._he_src]
         gram = np.zeros((n, 3, 3))
@@ -283,6 +286,27 @@ class SpringMassSimulation(Simulation):
         start = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=net.count))]).astype(np.int32)
         return start, allp[order] - net.anchors[owner[order]]
 
+    def _spring_slots(self) -> dict:
+        """Which end computes each spring's force in a substep (:func:`.spring_mass_kernels.spring_star_pass`).  An
+        anchor that moves owns its springs to held anchors and to anchors of a higher index; the owned springs take
+        the slots 0, 1, ... in CSR order, so each anchor's are a range; springs between two held anchors (a force
+        nobody reads) come last.  Returns int32 arrays ``slot_start`` (N + 1,) the range of each anchor's slots,
+        ``slot_nbr`` (S,) the other end, ``slot_he`` (S, 2) the half-edges (CSR) of the owning end and of the other,
+        and ``slot_spring`` (S,) each slot's spring (:attr:`.spring_mass_network.AnchorNetwork.springs` row)."""
+        src, dst, sid = self._he_src, self._he_dst, self._he_spring
+        n = self.network.count
+        free = self.inv_mass > 0
+        owned = free[src] & (~free[dst] | (src < dst))
+        held_pairs = np.setdiff1d(np.arange(len(self.network.springs)), sid[owned])
+        slot_spring = np.concatenate([sid[owned], held_pairs])
+        ends = np.argsort(sid, kind="stable").reshape(-1, 2)  # the two half-edges of each spring
+        swap = owned[ends[:, 1]]
+        ends[swap] = ends[swap, ::-1]  # the owner's first
+        he_of = ends[slot_spring]
+        slot_start = np.concatenate([[0], np.cumsum(np.bincount(src[owned], minlength=n))])
+        return {"slot_start": slot_start.astype(np.int32), "slot_nbr": dst[he_of[:, 0]].astype(np.int32),
+                "slot_he": he_of.astype(np.int32), "slot_spring": slot_spring}
+
     def _kappa(self, k_anchor: np.ndarray) -> np.ndarray:
         """(S,) N/m spring constants for per-anchor stiffness (N,) newtons (times each anchor's shear factor
         ``spring_factor``, :func:`.spring_mass_network.poisson_split`)."""
@@ -324,6 +348,11 @@ class SpringMassSimulation(Simulation):
         dev = self.device
         self._d_start = wp.array(self._he_start, dtype=wp.int32, device=dev)
         self._d_nbr = wp.array(self._he_dst.astype(np.int32), dtype=wp.int32, device=dev)
+        slots = self._slots
+        self._d_slot_he = wp.array(slots["slot_he"], dtype=wp.int32, device=dev)
+        self._d_slot_start = wp.array(slots["slot_start"], dtype=wp.int32, device=dev)
+        self._d_slot_nbr = wp.array(slots["slot_nbr"], dtype=wp.int32, device=dev)
+        self._d_rest_vec = wp.array(self._he_rest_vec, dtype=wp.vec3, device=dev)
         self._d_inv_mass = wp.array(self.inv_mass.astype(np.float32), dtype=wp.float32, device=dev)
         self._d_rest_pos = wp.array(self.network.anchors.astype(np.float32), dtype=wp.vec3, device=dev)
         self._d_gram_inv = wp.array(self._gram_inv.astype(np.float32), dtype=wp.mat33, device=dev)
@@ -336,7 +365,9 @@ class SpringMassSimulation(Simulation):
         self._d_contact_area = wp.array(self.contact_area.astype(np.float32), dtype=wp.float32, device=dev)
 
     def env_arrays(self, terms: PhysicsTerms) -> dict:
-        """Per-environment numpy arrays for one set of physics terms (half-edge order)."""
+        """Per-environment numpy arrays for one set of physics terms: ``kappa`` (N/m), ``dashpot`` (N·s/m),
+        ``yield_strain`` in the kernels' spring-slot order (:meth:`_spring_slots`), ``kappa_s``, ``dashpot_s`` per
+        spring, ``vol_stiffness`` (N,) J per anchor star."""
         net = self.network
         scale = terms.E_multiplier(net.count)
         kappa_s = self._kappa(self.stiffness * scale)
@@ -348,8 +379,8 @@ class SpringMassSimulation(Simulation):
         from .spring_mass_kernels import BIG
 
         ey = np.where(np.isfinite(ys), ys / E_s, BIG)
-        he = self._he_spring
-        return {"kappa": kappa_s[he], "dashpot": damp_s[he], "yield_strain": np.minimum(ey, BIG)[he], "kappa_s": kappa_s,
+        sl = self._slots["slot_spring"]
+        return {"kappa": kappa_s[sl], "dashpot": damp_s[sl], "yield_strain": np.minimum(ey, BIG)[sl], "kappa_s": kappa_s,
                 "dashpot_s": damp_s, "vol_stiffness": self.volume_unit * E_eff}
 
     def stable_substep(self, kappa_s: np.ndarray, dashpot_s: np.ndarray, vol_stiffness: np.ndarray | None = None,
@@ -462,7 +493,7 @@ class SpringMassSimulation(Simulation):
         return {"kinetic": kin, "elastic": ela, "potential": pot, "total": kin + ela + pot}
 
     def star_volume_ratio(self, positions: np.ndarray) -> np.ndarray:
-        """(N,) J_i = det F_i of every anchor's spring star (least-squares F, as :func:`.spring_mass_kernels.star_stress`)
+        """(N,) J_i = det F_i of every anchor's spring star (least-squares F, as :func:`.spring_mass_kernels.spring_star_pass`)
         at anchor positions (N, 3) m."""
         net = self.network
         x = np.asarray(positions, np.float64)
@@ -509,10 +540,13 @@ class SpringMassSimulation(Simulation):
         d_kappa = wp.array(stack("kappa"), dtype=wp.float32, device=dev)
         d_dash = wp.array(stack("dashpot"), dtype=wp.float32, device=dev)
         d_yield = wp.array(stack("yield_strain"), dtype=wp.float32, device=dev)
+        damped = int(any(np.any(e["dashpot"] > 0) for e in envs))
+        plastic = int(any(np.any(e["yield_strain"] < K.BIG) for e in envs))
         has_volume = int(any(np.any(e["vol_stiffness"] > 0) for e in envs))
         d_vol = wp.array(stack("vol_stiffness"), dtype=wp.float32, device=dev)
         d_stress = wp.zeros((n_env, n), dtype=wp.mat33, device=dev)
-        rest0 = net.rest_length[self._he_spring].astype(np.float32)
+        d_force = wp.zeros((n_env, len(self._he_src)), dtype=wp.vec3, device=dev)
+        rest0 = net.rest_length[self._slots["slot_spring"]].astype(np.float32)
         d_rest = wp.array(np.tile(rest0, (n_env, 1)), dtype=wp.float32, device=dev)
         accel = np.stack([self.scenario.gravity + t.extra_acceleration for t in terms_list]).astype(np.float32)
         d_accel = wp.array(accel, dtype=wp.vec3, device=dev)
@@ -543,27 +577,28 @@ class SpringMassSimulation(Simulation):
         use_graph = wp.get_device(dev).is_cuda
         lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
 
-        def launch_stress(a, record_cmd=False):
-            """Launch (or record) the volumetric term's first pass on buffer a's positions."""
-            return wp.launch_tiled(K.star_stress, dim=(n_env, n), device=dev, block_dim=lanes, record_cmd=record_cmd,
-                                   inputs=[bufs[a][0], self._d_rest_pos, self._d_start, self._d_nbr, self._d_gram_inv,
-                                           d_vol, d_stress])
+        def launch_pass(a, record_cmd=False):
+            """Launch (or record) a substep's first pass (springs and stars) on buffer a's state."""
+            inputs = [bufs[a][0], bufs[a][1], self._d_start, self._d_nbr, self._d_rest_vec, self._d_slot_start,
+                      self._d_slot_nbr, self._d_slot_he, d_rest, d_kappa, d_dash, d_yield, self._d_gram_inv, d_vol,
+                      d_force, d_stress, damped, plastic]
+            return wp.launch_tiled(K.spring_star_pass, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
+                                   record_cmd=record_cmd)
 
         def launch_substep(a, b, dt, record_cmd=False):
-            """Launch (or record) one substep from buffer a to buffer b (the stress pass first, when it is on)."""
-            first = [launch_stress(a, record_cmd)] if has_volume else []
-            inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], d_rest, d_kappa, d_dash, d_yield,
-                      self._d_start, self._d_nbr, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin, d_quad,
-                      d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c, ground, has_ground,
-                      d_stress, has_volume, float(dt)]
-            return first + [wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs, device=dev,
-                                            block_dim=lanes, record_cmd=record_cmd)]
+            """Launch (or record) one substep from buffer a to buffer b (its two passes)."""
+            inputs = [bufs[a][0], bufs[a][1], bufs[b][0], bufs[b][1], self._d_start, self._d_nbr, d_force,
+                      self._d_rest_vec, self._d_inv_mass, self._d_rest_pos, d_accel, d_lin,
+                      d_quad, d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c, ground,
+                      has_ground, d_stress, has_volume, float(dt)]
+            return [launch_pass(a, record_cmd), wp.launch_tiled(K.spring_substep, dim=(n_env, n), inputs=inputs,
+                                                                device=dev, block_dim=lanes, record_cmd=record_cmd)]
 
         cmds = []
         if not use_graph:
             recorded = [launch_substep(a, 1 - a, 1e-4, record_cmd=True) for a in (0, 1)]
             cmds = [c for r in recorded for c in r]
-            dt_cmds = [r[-1] for r in recorded]  # the substep launches (the stress pass has no dt)
+            dt_cmds = [r[-1] for r in recorded]  # the substep launches (the first pass has no dt)
         graphs: dict = {}
 
         def output(frame: int):
@@ -582,16 +617,12 @@ class SpringMassSimulation(Simulation):
                 wp.launch(K.store_state, dim=(n_env, n), inputs=[x, v, out_x, out_v, frame], device=dev)
 
         def kick(tau: float) -> None:
-            """Leapfrog bookkeeping: v += τ a(x, v) on the current state (buffer 0), positions unchanged.  The
-            kicked velocities go to buffer 1 (free between frames) and are copied back: every anchor's dashpots
-            read its neighbours' velocities from before the kick."""
-            if has_volume:
-                launch_stress(0)
+            """Leapfrog bookkeeping: v += τ a(x, v) on the current state (buffer 0), positions unchanged (the forces
+            come from the first pass before any velocity changes, so the kick is in place)."""
+            launch_pass(0)
             wp.launch(K.velocity_kick, dim=(n_env, n), device=dev,
-                      inputs=[bufs[0][0], bufs[0][1], bufs[1][1], d_rest, d_kappa, d_dash, d_yield, self._d_start,
-                              self._d_nbr, self._d_inv_mass, d_accel, d_lin, d_quad, self._d_rest_pos, d_stress,
-                              has_volume, float(tau)])
-            wp.copy(bufs[0][1], bufs[1][1])
+                      inputs=[bufs[0][1], bufs[0][1], self._d_start, self._d_nbr, d_force, self._d_rest_vec,
+                              self._d_inv_mass, d_accel, d_lin, d_quad, d_stress, has_volume, float(tau)])
 
         total_substeps = 0
         t_start = time.perf_counter()

@@ -3,10 +3,11 @@
 Arrays are indexed ``[env, item]``: every simulated environment (one effect list of a
 batch) runs in the same launch.  Springs are stored as half-edges in CSR order
 (``start[i] .. start[i + 1]`` are the springs of anchor ``i``), so each thread *gathers*
-the forces on its own anchor (a block of lanes per anchor on a GPU): no atomics, one launch
-per substep.  Each spring has one half-edge at each end with its own copy of the rest
-length; both copies see identical inputs every substep, so plastic rest-length updates
-stay symmetric.
+the forces on its own anchor (a block of lanes per anchor on a GPU): no atomics.  A substep is
+two launches: :func:`spring_star_pass` computes each spring's force once, at the end that owns it
+(its one copy of the rest length, so plastic rest-length updates stay symmetric), and each
+anchor star's volumetric stress; :func:`spring_substep` gathers them (the other end takes the
+negative, which is exactly the force it would compute itself) and integrates.
 """
 
 from __future__ import annotations
@@ -29,55 +30,57 @@ SAMPLE_ZETA = wp.constant(RIGID_SAMPLE_DAMPING_RATIO["spring_mass"])
 
 
 @wp.func
-def half_edge_force(e: int, h: int, xi: wp.vec3, vi: wp.vec3, x: wp.array2d(dtype=wp.vec3),
-                    v: wp.array2d(dtype=wp.vec3), rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
-                    dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
-                    nbr: wp.array(dtype=int)):
-    """Force (N) of half-edge ``h`` of environment ``e`` on its anchor at xi (m) moving at vi (m/s):
-    Hooke spring along the current direction plus the dashpot on the relative velocity along it;
-    past the yield strain the rest length (stored in ``rest[e, h]``) follows the spring."""
-    j = nbr[h]
-    d = x[e, j] - xi
+def spring_force(e: int, k: int, d: wp.vec3, dv: wp.vec3, rest: wp.array2d(dtype=float),
+                 kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                 yield_strain: wp.array2d(dtype=float), damped: int, plastic: int):
+    """Force (N) of spring slot ``k`` of environment ``e`` on the anchor it joins to a neighbour d = x_j − x_i away
+    (m) moving at dv = v_j − v_i (m/s) relative to it: Hooke spring along the current direction plus (damped != 0)
+    the dashpot on the relative velocity along it; (plastic != 0) past the yield strain the rest length (stored in
+    ``rest[e, k]``) follows the spring.  damped = 0 / plastic = 0 only where no spring of the launch has a dashpot /
+    a yield strain below BIG (adding 0 · dv·n or testing BIG changes nothing).  The force on the other end is
+    exactly its negative (d, dv and n change sign, l and the scalar do not)."""
     l = wp.length(d)
     f = wp.vec3(0.0, 0.0, 0.0)
     if l > 1.0e-12:
         n = d / l
-        L = rest[e, h]
-        ey = yield_strain[e, h]
-        if ey < BIG:
-            s = (l - L) / L
-            if s > ey:
-                L = l / (1.0 + ey)
-                rest[e, h] = L
-            elif s < -ey:
-                L = l / (1.0 - ey)
-                rest[e, h] = L
-        f = (kappa[e, h] * (l - L) + dashpot[e, h] * wp.dot(v[e, j] - vi, n)) * n
+        L = rest[e, k]
+        if plastic != 0:
+            ey = yield_strain[e, k]
+            if ey < BIG:
+                s = (l - L) / L
+                if s > ey:
+                    L = l / (1.0 + ey)
+                    rest[e, k] = L
+                elif s < -ey:
+                    L = l / (1.0 - ey)
+                    rest[e, k] = L
+        fn = kappa[e, k] * (l - L)
+        if damped != 0:
+            fn = fn + dashpot[e, k] * wp.dot(dv, n)
+        f = fn * n
     return f
 
 
 @wp.func
-def spring_force_sum(e: int, i: int, first: int, stride: int, xi: wp.vec3, vi: wp.vec3,
-                     x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), rest: wp.array2d(dtype=float),
-                     kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
-                     yield_strain: wp.array2d(dtype=float), start: wp.array(dtype=int), nbr: wp.array(dtype=int),
-                     x_rest: wp.array(dtype=wp.vec3), stress: wp.array2d(dtype=wp.mat33), has_volume: int):
-    """Sum (N) of :func:`half_edge_force` over anchor ``i``'s half-edges start[i] + first, + stride, ... (all of
-    them with first 0, stride 1; one lane's share in a block of lanes), plus, when has_volume != 0, the volumetric
-    term's force Σ_h (A_i + A_j)(X_j − X_i) (A = :func:`star_stress`'s stress[e, ·], N/m; X = x_rest, m): the
-    gradient of the anchor's own star energy and of every star it belongs to (the half-edges are symmetric: j is in
-    i's star exactly when i is in j's)."""
+def gathered_force(e: int, i: int, first: int, stride: int, start: wp.array(dtype=int), nbr: wp.array(dtype=int),
+                   force: wp.array2d(dtype=wp.vec3), rest_vec: wp.array(dtype=wp.vec3),
+                   stress: wp.array2d(dtype=wp.mat33), has_volume: int):
+    """Sum (N) of the spring forces on anchor ``i`` over its half-edges start[i] + first, + stride, ... (all of them
+    with first 0, stride 1; one lane's share in a block of lanes): force[e, h], which :func:`spring_star_pass`
+    computed at the end that owns the spring (from the other end: the exact negative of what this end would
+    compute); plus, when has_volume != 0, the volumetric term's force Σ_h (A_i + A_j) d0_h
+    (A = :func:`spring_star_pass`'s stress[e, ·], N/m; d0_h = rest_vec[h] = X_j − X_i, m): the gradient of the
+    anchor's own star energy and of every star it belongs to (the half-edges are symmetric: j is in i's star
+    exactly when i is in j's)."""
     f = wp.vec3(0.0, 0.0, 0.0)
     d0_sum = wp.vec3(0.0, 0.0, 0.0)
-    Xi = x_rest[i]
     h = start[i] + first
     stop = start[i + 1]
     while h < stop:
-        f = f + half_edge_force(e, h, xi, vi, x, v, rest, kappa, dashpot, yield_strain, nbr)
+        f = f + force[e, h]
         if has_volume != 0:
-            j = nbr[h]
-            d0 = x_rest[j] - Xi
-            f = f + stress[e, j] * d0
+            d0 = rest_vec[h]
+            f = f + stress[e, nbr[h]] * d0
             d0_sum = d0_sum + d0
         h += stride
     if has_volume != 0:
@@ -100,30 +103,56 @@ def star_deformation(e: int, i: int, x: wp.array2d(dtype=wp.vec3), x_rest: wp.ar
 
 
 @wp.kernel
-def star_stress(x: wp.array2d(dtype=wp.vec3), x_rest: wp.array(dtype=wp.vec3), start: wp.array(dtype=int),
-                nbr: wp.array(dtype=int), gram_inv: wp.array(dtype=wp.mat33), vol_stiffness: wp.array2d(dtype=float),
-                stress: wp.array2d(dtype=wp.mat33)):
-    """First pass of the volumetric term, by a block of lanes per anchor as :func:`spring_substep` (lane ``l`` sums
-    the half-edges start[i] + l, + block_dim, ...; a tile reduction joins them).  Per anchor star, energy
-    W_i = ½ s_i (J_i − 1)², J_i = det F_i (F_i as :func:`star_deformation`), s_i = vol_stiffness[e, i] = V_i λ_extra,i
-    (J); writes A_i = s_i (J_i − 1) cof(F_i) G_i⁻¹ (N/m), so ∂W_i/∂x_j = A_i (X_j − X_i) for a neighbour j and
-    −Σ_h A_i (X_j − X_i) for the anchor itself.  cof(F) = ∂J/∂F (columns c1×c2, c2×c0, c0×c1 of F's columns c): J is
-    rotation invariant, so the forces store no energy under rigid rotation, and they sum to zero over the star
-    (momentum)."""
+def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
+                     nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3), slot_start: wp.array(dtype=int),
+                     slot_nbr: wp.array(dtype=int), slot_he: wp.array2d(dtype=int), rest: wp.array2d(dtype=float),
+                     kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
+                     gram_inv: wp.array(dtype=wp.mat33), vol_stiffness: wp.array2d(dtype=float),
+                     force: wp.array2d(dtype=wp.vec3), stress: wp.array2d(dtype=wp.mat33), damped: int,
+                     plastic: int):
+    """First pass of a substep, by a block of lanes per anchor as :func:`spring_substep` (lane ``l`` takes every
+    block_dim-th item from the l-th; a tile reduction joins the star's sums).  For anchor ``i``:
+
+    * **its springs, each computed once**: the springs anchor ``i`` owns (it moves, and the other end is held or has
+      the higher index; :meth:`.spring_mass.SpringMassSimulation._spring_slots`) are the slots
+      k = slot_start[i] .. slot_start[i + 1] − 1, to j = slot_nbr[k]: f = :func:`spring_force` (N), the force on
+      ``i``, goes to its half-edge force[e, slot_he[k, 0]] and −f, the force on ``j``, to j's
+      force[e, slot_he[k, 1]] — half the square roots and divisions of every end computing its own, the same numbers;
+    * **the volumetric term** (s_i = vol_stiffness[e, i] = V_i λ_extra,i, J; 0: none): over its half-edges
+      h = start[i] .. start[i + 1] − 1 (to j = nbr[h]), per anchor star energy W_i = ½ s_i (J_i − 1)², J_i = det F_i,
+      F_i = (Σ_h d_h d0_hᵀ) G_i⁻¹ (d = x_j − x_i, d0_h = rest_vec[h] = X_j − X_i, m; G_i⁻¹ = gram_inv[i], 1/m²);
+      writes A_i = s_i (J_i − 1) cof(F_i) G_i⁻¹ (N/m), so ∂W_i/∂x_j = A_i d0_h for a neighbour j and
+      −Σ_h A_i d0_h for the anchor itself.  cof(F) = ∂J/∂F (columns c1×c2, c2×c0, c0×c1 of F's columns c): J is
+      rotation invariant, so the forces store no energy under rigid rotation, and they sum to zero over the star
+      (momentum).
+
+    rest, kappa, dashpot, yield_strain: (E, S) per slot (m, N/m, N·s/m, ≥ BIG: elastic); damped, plastic: whether
+    any spring has a dashpot, a yield strain (:func:`spring_force`); force: (E, H) N per half-edge (the force on its
+    anchor); stress: (E, N) N/m."""
     e, i, lane = wp.tid()
+    xi = x[e, i]
+    vi = v[e, i]
+    k = slot_start[i] + lane
+    stop = slot_start[i + 1]
+    while k < stop:
+        j = slot_nbr[k]
+        dv = wp.vec3(0.0, 0.0, 0.0)
+        if damped != 0:
+            dv = v[e, j] - vi
+        f = spring_force(e, k, x[e, j] - xi, dv, rest, kappa, dashpot, yield_strain, damped, plastic)
+        force[e, slot_he[k, 0]] = f
+        force[e, slot_he[k, 1]] = -f
+        k += wp.block_dim()
     s = vol_stiffness[e, i]
     if s == 0.0:  # the same for every lane of the block
         if lane == 0:
             stress[e, i] = wp.mat33(0.0)
         return
-    xi = x[e, i]
-    x0 = x_rest[i]
     B = wp.mat33(0.0)
     h = start[i] + lane
     stop = start[i + 1]
     while h < stop:
-        j = nbr[h]
-        B = B + wp.outer(x[e, j] - xi, x_rest[j] - x0)
+        B = B + wp.outer(x[e, nbr[h]] - xi, rest_vec[h])
         h += wp.block_dim()
     total = wp.tile_sum(wp.tile(B, preserve_type=True))
     if lane == 0:
@@ -170,31 +199,27 @@ def integrate_anchor(e: int, i: int, xi: wp.vec3, vi: wp.vec3, f: wp.vec3, im: f
 @wp.kernel
 def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
                    x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
-                   rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
-                   dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
-                   start: wp.array(dtype=int), nbr: wp.array(dtype=int),
-                   inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
+                   start: wp.array(dtype=int), nbr: wp.array(dtype=int), force: wp.array2d(dtype=wp.vec3),
+                   rest_vec: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
                    accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
                    quad_drag: wp.array(dtype=float), ground_law: wp.array(dtype=wp.vec3),
                    contact_low: wp.array2d(dtype=float), contact_area: wp.array(dtype=float),
                    rigid_k: wp.array2d(dtype=float), rigid_c: wp.array2d(dtype=float), ground: float,
                    has_ground: int, stress: wp.array2d(dtype=wp.mat33), has_volume: int, dt: float):
-    """One semi-implicit Euler substep of anchor ``i`` in environment ``e``, by a block of lanes
-    (``wp.launch_tiled``, dim (E, N), block_dim lanes: 1 on the CPU, 32 on a GPU).  Lane ``l`` sums the
-    half-edges start[i] + l, + block_dim, ...; a tile reduction adds the lanes' forces and lane 0
-    integrates.  On a GPU the spring loads of an anchor are so issued together instead of one after
-    another (one thread per anchor is latency-bound there).
+    """Second pass of one semi-implicit Euler substep of anchor ``i`` in environment ``e``, by a block of lanes
+    (``wp.launch_tiled``, dim (E, N), block_dim lanes: 1 on the CPU, 32 on a GPU).  Lane ``l`` gathers the
+    half-edges start[i] + l, + block_dim, ... (:func:`gathered_force`); a tile reduction adds the lanes' forces and
+    lane 0 integrates.  On a GPU the loads of an anchor are so issued together instead of one after another (one
+    thread per anchor is latency-bound there).
 
     x, v: (E, N) m, m/s at the start of the substep; x_out, v_out: (E, N) at its end.
-    rest: (E, H) current rest lengths m (plasticity updates them); kappa: (E, H) N/m;
-    dashpot: (E, H) N·s/m (explicit, along the spring); yield_strain: (E, H) (>= BIG: elastic).
-    inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
+    force: (E, H) N per half-edge and stress: (E, N) N/m, :func:`spring_star_pass` of x, v; start, nbr, rest_vec: the
+    half-edges (CSR), as :func:`gathered_force`.  inv_mass: (N,) 1/kg, 0 for anchors held by the clamp (they stay at x_rest).
     accel: (E,) m/s² gravity + extra acceleration; lin_drag (E,) 1/s; quad_drag (E,) 1/m;
     ground_law: (E,) (k_g Pa/m, c_g Pa·s/m, μ) of the contact law at the plane z = ground (when has_ground != 0);
     contact_low: (E, N) m, depth of each anchor cell's lowest point below the anchor (:func:`contact_depths`);
     contact_area: (N,) m²; rigid_k: (E, N) N/m, each anchor's rigid-floor spring; rigid_c: (E, N) N·s/m, its
-    material's Kelvin–Voigt damper (:mod:`.contact`); stress: (E, N) N/m, :func:`star_stress` of x (read when
-    has_volume != 0).
+    material's Kelvin–Voigt damper (:mod:`.contact`).
     """
     e, i, lane = wp.tid()
     im = inv_mass[i]
@@ -203,38 +228,31 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
             x_out[e, i] = x_rest[i]
             v_out[e, i] = wp.vec3(0.0, 0.0, 0.0)
         return
-    xi = x[e, i]
-    vi = v[e, i]
-    f = spring_force_sum(e, i, lane, wp.block_dim(), xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr,
-                         x_rest, stress, has_volume)
+    f = gathered_force(e, i, lane, wp.block_dim(), start, nbr, force, rest_vec, stress, has_volume)
     total = wp.tile_sum(wp.tile(f, preserve_type=True))
     if lane == 0:
-        integrate_anchor(e, i, xi, vi, total[0], im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
+        integrate_anchor(e, i, x[e, i], v[e, i], total[0], im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
                          contact_low, contact_area, rigid_k, rigid_c, ground, has_ground, dt)
 
 
 @wp.kernel
-def velocity_kick(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
-                  rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float),
-                  dashpot: wp.array2d(dtype=float), yield_strain: wp.array2d(dtype=float),
-                  start: wp.array(dtype=int), nbr: wp.array(dtype=int), inv_mass: wp.array(dtype=float),
-                  accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
-                  quad_drag: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
-                  stress: wp.array2d(dtype=wp.mat33), has_volume: int, tau: float):
+def velocity_kick(v: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
+                  nbr: wp.array(dtype=int), force: wp.array2d(dtype=wp.vec3), rest_vec: wp.array(dtype=wp.vec3),
+                  inv_mass: wp.array(dtype=float), accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
+                  quad_drag: wp.array(dtype=float), stress: wp.array2d(dtype=wp.mat33), has_volume: int, tau: float):
     """Velocity kick v += τ a(x, v) of anchor ``i`` in environment ``e`` (positions unchanged), with the forces of
-    :func:`spring_substep` (drags implicit): the leapfrog start (τ = −Δt/2: the velocities become those half a
-    substep earlier) and its correction when the substep changes from Δt to Δt' (τ = (Δt − Δt')/2).  Same arrays
-    and units as :func:`spring_substep`; the kicked velocities go to ``v_out`` (not ``v``, which the dashpots of
-    the neighbours still read); τ in s (may be negative)."""
+    :func:`spring_substep` (``force`` and ``stress`` from :func:`spring_star_pass` of the same state; drags
+    implicit): the leapfrog start (τ = −Δt/2: the velocities become those half a substep earlier) and its correction
+    when the substep changes from Δt to Δt' (τ = (Δt − Δt')/2).  Same arrays and units as :func:`spring_substep`;
+    the kicked velocities go to ``v_out`` (may be ``v``: an anchor reads only its own); τ in s (may be
+    negative)."""
     e, i = wp.tid()
     im = inv_mass[i]
     vi = v[e, i]
     if im == 0.0:
         v_out[e, i] = vi
         return
-    xi = x[e, i]
-    f = spring_force_sum(e, i, 0, 1, xi, vi, x, v, rest, kappa, dashpot, yield_strain, start, nbr, x_rest, stress,
-                         has_volume)
+    f = gathered_force(e, i, 0, 1, start, nbr, force, rest_vec, stress, has_volume)
     v_out[e, i] = kicked_velocity(e, vi, f, im, accel, lin_drag, quad_drag, tau)
 
 

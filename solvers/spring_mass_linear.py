@@ -25,7 +25,7 @@ from ..core.errors import UserError
 
 def volume_gradient_matrix(sim):
     """(N, 3N) scipy CSR, 1/m: row k is b_k, the linearised J_k − 1 = tr ∇u_k of anchor k's star (least-squares
-    gradient, as the solver's star_stress): g_h = G_k⁻¹ d0_h on neighbour j_h, −Σ_h g_h on k itself."""
+    gradient, as the solver's spring_star_pass): g_h = G_k⁻¹ d0_h on neighbour j_h, −Σ_h g_h on k itself."""
     import scipy.sparse as sp
 
     n = sim.network.count

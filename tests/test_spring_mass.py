@@ -358,8 +358,10 @@ def test_bad_input_gets_clear_errors():
 
 def test_velocity_kick_reads_the_velocities_from_before_the_kick():
     """Two anchors, one spring with a dashpot, equal and opposite velocities, no body force: the kick must
-    keep the momentum zero.  Written in place, the second anchor's dashpot would read the first anchor's
-    velocity after its kick (on the CPU, threads run in order) and the pair would gain momentum."""
+    keep the momentum zero.  Had the kick read its neighbours' velocities while writing its own in place, the
+    second anchor's dashpot would read the first anchor's velocity after its kick (on the CPU, threads run in
+    order) and the pair would gain momentum; the spring forces come from the first pass, before any velocity
+    changes."""
     from unipixie.solvers import spring_mass_kernels as K
     from unipixie.solvers.warp_runtime import init_warp
 
@@ -368,12 +370,18 @@ def test_velocity_kick_reads_the_velocities_from_before_the_kick():
     v0 = np.array([[[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
     v = wp.array(v0, dtype=wp.vec3, device="cpu")
     v_out = wp.zeros((1, 2), dtype=wp.vec3, device="cpu")
-    two = lambda value: wp.array(np.full((1, 2), value), dtype=float, device="cpu")  # noqa: E731  per half-edge
     one = lambda value, dtype=float: wp.array(np.asarray(value), dtype=dtype, device="cpu")  # noqa: E731
+    spring = lambda value: one([[value]])  # noqa: E731  per spring slot (anchor 0 owns the one spring)
+    force = wp.zeros((1, 2), dtype=wp.vec3, device="cpu")
+    stress = wp.zeros((1, 2), dtype=wp.mat33, device="cpu")
+    start, nbr, rest_vec = one([0, 1, 2], int), one([1, 0], int), one([[0.1, 0, 0], [-0.1, 0, 0]], wp.vec3)
+    wp.launch_tiled(K.spring_star_pass, dim=(1, 2), device="cpu", block_dim=1,
+                    inputs=[x, v, start, nbr, rest_vec, one([0, 1, 1], int), one([1], int), one([[0, 1]], int),
+                            spring(0.1), spring(100.0), spring(5.0), spring(K.BIG), one(np.zeros((2, 3, 3)), wp.mat33),
+                            one(np.zeros((1, 2))), force, stress, 1, 0])
     wp.launch(K.velocity_kick, dim=(1, 2), device="cpu",
-              inputs=[x, v, v_out, two(0.1), two(100.0), two(5.0), two(K.BIG), one([0, 1, 2], int), one([1, 0], int),
-                      one([1.0, 1.0]), one(np.zeros((1, 3)), wp.vec3), one([0.0]), one([0.0]),
-                      one(x.numpy()[0], wp.vec3), wp.zeros((1, 2), dtype=wp.mat33, device="cpu"), 0, 0.01])
+              inputs=[v, v_out, start, nbr, force, rest_vec, one([1.0, 1.0]), one(np.zeros((1, 3)), wp.vec3),
+                      one([0.0]), one([0.0]), stress, 0, 0.01])
     out = v_out.numpy()[0]
     assert np.allclose(v.numpy(), v0)  # the input is left alone
     assert abs(out[0, 0]) < 1.0 and abs(out[1, 0]) < 1.0  # the dashpot slowed both down

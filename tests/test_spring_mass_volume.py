@@ -32,27 +32,30 @@ def cube_sim(nu: float, anchors: int, volumetric: bool = True, E: float = 2e5):
 
 def kernel_forces(sim, positions: np.ndarray) -> np.ndarray:
     """(N, 3) N: the solver's elastic forces on every anchor at ``positions`` (N, 3) m, from its own kernels (the
-    stress pass, then the velocity kick with unit inverse mass, τ = 1 s, no body force, no dashpots: v_out = f)."""
+    first pass, then the velocity kick with unit inverse mass, τ = 1 s, no body force, no dashpots: v_out = f)."""
     from unipixie.solvers import spring_mass_kernels as K
     from unipixie.solvers.warp_runtime import init_warp
 
     wp = init_warp()
     n = sim.network.count
-    kappa = sim._kappa(sim.stiffness)[sim._he_spring]
+    slots = sim._slots["slot_spring"]
+    kappa = sim._kappa(sim.stiffness)[slots]
     vol = sim.volume_unit * sim.youngs_modulus
-    h = len(kappa)
+    s = len(kappa)
     arr = lambda a, dtype=float: wp.array(np.asarray(a), dtype=dtype, device="cpu")  # noqa: E731
     x = arr(np.asarray(positions, np.float64)[None].astype(np.float32), wp.vec3)
+    v = wp.zeros((1, n), dtype=wp.vec3, device="cpu")
     stress = wp.zeros((1, n), dtype=wp.mat33, device="cpu")
-    wp.launch_tiled(K.star_stress, dim=(1, n), device="cpu", block_dim=1,
-                    inputs=[x, sim._d_rest_pos, sim._d_start, sim._d_nbr, sim._d_gram_inv, arr(vol[None]), stress])
+    force = wp.zeros((1, len(sim._he_src)), dtype=wp.vec3, device="cpu")
+    wp.launch_tiled(K.spring_star_pass, dim=(1, n), device="cpu", block_dim=1,
+                    inputs=[x, v, sim._d_start, sim._d_nbr, sim._d_rest_vec, sim._d_slot_start, sim._d_slot_nbr,
+                            sim._d_slot_he, arr(sim.network.rest_length[slots][None]), arr(kappa[None]),
+                            arr(np.zeros((1, s))), arr(np.full((1, s), K.BIG)), sim._d_gram_inv, arr(vol[None]), force,
+                            stress, 0, 0])
     v_out = wp.zeros((1, n), dtype=wp.vec3, device="cpu")
     wp.launch(K.velocity_kick, dim=(1, n), device="cpu",
-              inputs=[x, wp.zeros((1, n), dtype=wp.vec3, device="cpu"), v_out,
-                      arr(sim.network.rest_length[sim._he_spring][None]), arr(kappa[None]), arr(np.zeros((1, h))),
-                      arr(np.full((1, h), K.BIG)), sim._d_start, sim._d_nbr, arr(np.ones(n)),
-                      arr(np.zeros((1, 3)), wp.vec3), arr([0.0]), arr([0.0]), sim._d_rest_pos, stress,
-                      int(np.any(vol > 0)), 1.0])
+              inputs=[v, v_out, sim._d_start, sim._d_nbr, force, sim._d_rest_vec, arr(np.ones(n)),
+                      arr(np.zeros((1, 3)), wp.vec3), arr([0.0]), arr([0.0]), stress, int(np.any(vol > 0)), 1.0])
     return v_out.numpy()[0].astype(np.float64)
 
 
