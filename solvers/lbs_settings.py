@@ -6,7 +6,6 @@ read them without loading the solver, torch or Warp.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar, Optional
 
@@ -15,7 +14,7 @@ import numpy as np
 from ..core.errors import UserError
 from . import skinning
 from .lbs_fit import DEFAULT_FIT_ITERATIONS
-from .settings import SolverSettings
+from .settings import SolverSettings, setting
 
 DEFAULT_CUBATURE_POINTS = 500
 DEFAULT_MASS_SAMPLES = 4000
@@ -60,48 +59,26 @@ class LBSSettings(SolverSettings):
 
     solver_words: ClassVar[str] = "LBS"
 
-    handles: int = skinning.DEFAULT_HANDLES
-    cubature_points: int = DEFAULT_CUBATURE_POINTS
-    mass_samples: int = DEFAULT_MASS_SAMPLES
-    collision_points: int = DEFAULT_COLLISION_POINTS
+    handles: int = setting(skinning.DEFAULT_HANDLES, "count")
+    cubature_points: int = setting(DEFAULT_CUBATURE_POINTS, "count")
+    mass_samples: int = setting(DEFAULT_MASS_SAMPLES, "count")
+    collision_points: int = setting(DEFAULT_COLLISION_POINTS, "count")
     skinning_params: Optional[np.ndarray] = None
-    fit_iterations: int = DEFAULT_FIT_ITERATIONS
-    max_dt: float = DEFAULT_MAX_DT
-    newton_iterations: int = DEFAULT_NEWTON_ITERATIONS
-    newton_tolerance: float = 1e-6
-    line_search_steps: int = 10
-    reuse_hessian: bool = True
-    clamp_stiffness: float = 1.0
-    friction_velocity: float = 1e-3
-    cache_skinning: bool = True
-    torch_threads: int = 1
-    line_search_candidates: int = 0
-    profile_device: bool = False
-    integrator: str = "newmark"
+    fit_iterations: int = setting(DEFAULT_FIT_ITERATIONS, "count0")
+    max_dt: float = setting(DEFAULT_MAX_DT, "positive")
+    newton_iterations: int = setting(DEFAULT_NEWTON_ITERATIONS, "count")
+    newton_tolerance: float = setting(1e-6, "positive")
+    line_search_steps: int = setting(10, "count")
+    reuse_hessian: bool = setting(True, "flag")
+    clamp_stiffness: float = setting(1.0, "positive")
+    friction_velocity: float = setting(1e-3, "positive")
+    cache_skinning: bool = setting(True, "flag")
+    torch_threads: int = setting(1, "count0")
+    line_search_candidates: int = setting(0, "count0")
+    profile_device: bool = setting(False, "flag")
+    integrator: str = setting("newmark", "choice", choices=INTEGRATORS)
 
-    def __post_init__(self):
-        if self.integrator not in INTEGRATORS:
-            raise UserError(f"LBS setting 'integrator' must be one of {INTEGRATORS}, got {self.integrator!r}")
-        for name in ("handles", "cubature_points", "mass_samples", "collision_points", "newton_iterations",
-                     "line_search_steps"):
-            val = getattr(self, name)
-            if not isinstance(val, (int, np.integer)) or val < 1:
-                raise UserError(f"LBS setting '{name}' must be a positive whole number, got {val!r}")
-            setattr(self, name, int(val))
-        for name in ("fit_iterations", "line_search_candidates"):
-            val = getattr(self, name)
-            if not isinstance(val, (int, np.integer)) or val < 0:
-                raise UserError(f"LBS setting '{name}' must be a whole number >= 0, got {val!r}")
-            setattr(self, name, int(val))
-        for name in ("max_dt", "newton_tolerance", "clamp_stiffness", "friction_velocity"):
-            val = getattr(self, name)
-            try:
-                ok = math.isfinite(float(val)) and float(val) > 0
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise UserError(f"LBS setting '{name}' must be a positive number, got {val!r}")
-            setattr(self, name, float(val))
+    def check(self):
         if self.skinning_params is not None:
             p = np.asarray(self.skinning_params, dtype=np.float64).reshape(-1)
             expected = skinning.param_count(self.handles)

@@ -6,15 +6,16 @@ read them without loading the solver or Warp.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar, Optional
 
 import numpy as np
 
 from ..core.errors import UserError
-from .settings import SolverSettings
+from .settings import SolverSettings, setting
 
+MATERIAL_SAMPLINGS = ("nearest", "trilinear")
+"""How voxel material fields are looked up at the particles (setting ``material_sampling``)."""
 P2G_SCATTER_MODES = ("atomic", "vector", "warp")
 """How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
 
@@ -84,92 +85,36 @@ class MPMSettings(SolverSettings):
 
     solver_words: ClassVar[str] = "MPM"
 
-    dx: Optional[float] = None
-    cells_across: Optional[int] = None
-    cells_across_thinnest: Optional[int] = None
-    auto_max_particles: Optional[int] = None
-    particles_per_cell_axis: int = 2
-    jitter: float = 0.0
-    seed: int = 0
-    cfl: float = 0.4
-    viscous_cfl: float = 0.1
-    max_dt: Optional[float] = None
-    max_substeps_per_frame: int = 20000
-    domain_margin_cells: int = 4
-    max_grid_nodes: int = 1 << 25
-    max_particles: int = 20_000_000
-    material_sampling: str = "nearest"
+    dx: Optional[float] = setting(None, "positive", optional=True)
+    cells_across: Optional[int] = setting(None, "count", optional=True)
+    cells_across_thinnest: Optional[int] = setting(None, "count0", optional=True)
+    auto_max_particles: Optional[int] = setting(None, "count", optional=True)
+    particles_per_cell_axis: int = setting(2, "count")
+    jitter: float = setting(0.0, "unit")
+    seed: int = setting(0, "count0")
+    cfl: float = setting(0.4, "positive", maximum=1.0, hint=" (0.3-0.5 is usual)")
+    viscous_cfl: float = setting(0.1, "positive")
+    max_dt: Optional[float] = setting(None, "positive", optional=True)
+    max_substeps_per_frame: int = setting(20000, "count")
+    domain_margin_cells: int = setting(4, "count")
+    max_grid_nodes: int = setting(1 << 25, "count")
+    max_particles: int = setting(20_000_000, "count")
+    material_sampling: str = setting("nearest", "choice", choices=MATERIAL_SAMPLINGS)
     initial_deformation: Optional[np.ndarray] = None
-    sort_particles: bool = True
-    p2g_scatter: str = "auto"
-    split_g2p: Optional[bool] = None
-    graph_substeps: Optional[int] = None
-    block_dim: int = 256
-    sort_interval: int = 0
-    rigid_mass_once: bool = True
+    sort_particles: bool = setting(True, "flag")
+    p2g_scatter: str = setting("auto", "choice", choices=("auto",) + P2G_SCATTER_MODES)
+    split_g2p: Optional[bool] = setting(None, "flag", optional=True)
+    graph_substeps: Optional[int] = setting(None, "count0", optional=True)
+    block_dim: int = setting(256, "count", maximum=1024)
+    sort_interval: int = setting(0, "count0")
+    rigid_mass_once: bool = setting(True, "flag")
 
-    def __post_init__(self):
-        def positive(name, value, integer=False):
-            try:
-                x = int(value) if integer else float(value)
-            except (TypeError, ValueError):
-                raise UserError(f"MPM setting '{name}' must be a number, got {value!r}") from None
-            if not (math.isfinite(x) and x > 0):
-                raise UserError(f"MPM setting '{name}' must be positive, got {value!r}")
-            return x
-
-        if self.dx is not None:
-            self.dx = positive("dx", self.dx)
-        if self.max_dt is not None:
-            self.max_dt = positive("max_dt", self.max_dt)
+    def check(self):
         if self.cells_across_thinnest is None:
             self.cells_across_thinnest = DEFAULT_CELLS_ACROSS_THINNEST if self.cells_across is None else 0
         if self.cells_across is None:
             self.cells_across = DEFAULT_CELLS_ACROSS
-        self.cells_across_thinnest = int(self.cells_across_thinnest)
-        if self.cells_across_thinnest < 0:
-            raise UserError(f"MPM setting 'cells_across_thinnest' must be 0 (off) or positive, got "
-                            f"{self.cells_across_thinnest}")
-        if self.auto_max_particles is not None:
-            self.auto_max_particles = positive("auto_max_particles", self.auto_max_particles, integer=True)
-        for name in ("cells_across", "particles_per_cell_axis",
-                     "max_substeps_per_frame", "max_grid_nodes", "max_particles"):
-            setattr(self, name, positive(name, getattr(self, name), integer=True))
-        self.cfl = positive("cfl", self.cfl)
-        self.viscous_cfl = positive("viscous_cfl", self.viscous_cfl)
-        if self.cfl > 1.0:
-            raise UserError(f"MPM setting 'cfl' must be at most 1 (0.3-0.5 is usual), got {self.cfl}")
-        self.domain_margin_cells = int(self.domain_margin_cells)
-        if self.domain_margin_cells < 1:
-            raise UserError("MPM setting 'domain_margin_cells' must be at least 1")
-        self.jitter = float(self.jitter)
-        if not 0.0 <= self.jitter <= 1.0:
-            raise UserError(f"MPM setting 'jitter' must lie in [0, 1], got {self.jitter}")
-        if self.material_sampling not in ("nearest", "trilinear"):
-            raise UserError(f"MPM setting 'material_sampling' must be 'nearest' or 'trilinear', "
-                            f"got {self.material_sampling!r}")
-        if self.p2g_scatter not in ("auto",) + P2G_SCATTER_MODES:
-            raise UserError(f"MPM setting 'p2g_scatter' must be one of {('auto',) + P2G_SCATTER_MODES}, "
-                            f"got {self.p2g_scatter!r}")
-        if self.split_g2p is not None:
-            self.split_g2p = bool(self.split_g2p)
-        self.rigid_mass_once = bool(self.rigid_mass_once)
-        for name in ("graph_substeps", "sort_interval"):
-            value = getattr(self, name)
-            if value is None and name == "graph_substeps":
-                continue
-            try:
-                value = int(value)
-            except (TypeError, ValueError):
-                raise UserError(f"MPM setting '{name}' must be a whole number, got {value!r}") from None
-            if value < 0:
-                raise UserError(f"MPM setting '{name}' must be 0 or more, got {value}")
-            setattr(self, name, value)
-        try:
-            self.block_dim = int(self.block_dim)
-        except (TypeError, ValueError):
-            raise UserError(f"MPM setting 'block_dim' must be a whole number, got {self.block_dim!r}") from None
-        if not (32 <= self.block_dim <= 1024 and self.block_dim % 32 == 0):
+        if not (32 <= self.block_dim and self.block_dim % 32 == 0):
             raise UserError(f"MPM setting 'block_dim' must be a multiple of 32 from 32 to 1024, got {self.block_dim}")
         if self.initial_deformation is not None:
             F = np.asarray(self.initial_deformation, dtype=np.float64)

@@ -13,7 +13,7 @@ from typing import ClassVar, Optional
 import numpy as np
 
 from ..core.errors import UserError
-from .settings import SolverSettings
+from .settings import SolverSettings, as_number, setting
 
 DEFAULT_ANCHORS = 2048
 """N_a: anchors of the network (the paper's spring head predicts N_a stiffnesses + 1 softness)."""
@@ -65,55 +65,30 @@ class SpringMassSettings(SolverSettings):
 
     solver_words: ClassVar[str] = "spring-mass"
 
-    anchors: int = DEFAULT_ANCHORS
-    neighbours: int = DEFAULT_NEIGHBOURS
-    fixed_springs: int = DEFAULT_FIXED_SPRINGS
+    anchors: int = setting(DEFAULT_ANCHORS, "count")
+    neighbours: int = setting(DEFAULT_NEIGHBOURS, "count")
+    fixed_springs: int = setting(DEFAULT_FIXED_SPRINGS, "count0")
     softness: float = DEFAULT_SOFTNESS
     stiffness: Optional[np.ndarray] = None
-    binding: int = DEFAULT_BINDING
-    fill_per_anchor: int = 12
-    max_fill_points: int = 400_000
-    safety: float = 0.7
-    substeps: Optional[int] = None
-    max_substeps_per_frame: int = 200_000
-    stiffness_calibration: float = STIFFNESS_CALIBRATION
-    lanes_per_anchor: Optional[int] = None
-    volumetric: bool = True
-    step_bound: str = "spectral"
+    binding: int = setting(DEFAULT_BINDING, "count")
+    fill_per_anchor: int = setting(12, "count")
+    max_fill_points: int = setting(400_000, "count")
+    safety: float = setting(0.7, "fraction")
+    substeps: Optional[int] = setting(None, "count", optional=True)
+    max_substeps_per_frame: int = setting(200_000, "count")
+    stiffness_calibration: float = setting(STIFFNESS_CALIBRATION, "positive")
+    lanes_per_anchor: Optional[int] = setting(None, "count", optional=True, maximum=1024)
+    volumetric: bool = setting(True, "flag")
+    step_bound: str = setting("spectral", "choice", choices=STEP_BOUNDS)
 
-    def __post_init__(self):
-        if self.step_bound not in STEP_BOUNDS:
-            raise UserError(f"spring-mass setting 'step_bound' must be one of {', '.join(STEP_BOUNDS)}, "
-                            f"got {self.step_bound!r}")
-        if not isinstance(self.volumetric, (bool, np.bool_)):
-            raise UserError(f"spring-mass setting 'volumetric' must be true or false, got {self.volumetric!r}")
-        self.volumetric = bool(self.volumetric)
-        if self.lanes_per_anchor is not None:
-            lanes = self.lanes_per_anchor
-            if not isinstance(lanes, (int, np.integer)) or not 1 <= lanes <= 1024:
-                raise UserError(f"spring-mass setting 'lanes_per_anchor' must be None or a whole number in 1..1024, "
-                                f"got {lanes!r}")
-            self.lanes_per_anchor = int(lanes)
-        for name in ("anchors", "neighbours", "binding", "fill_per_anchor", "max_fill_points", "max_substeps_per_frame"):
-            val = getattr(self, name)
-            if not isinstance(val, (int, np.integer)) or val < 1:
-                raise UserError(f"spring-mass setting '{name}' must be a positive whole number, got {val!r}")
-            setattr(self, name, int(val))
-        if not isinstance(self.fixed_springs, (int, np.integer)) or self.fixed_springs < 0:
-            raise UserError(f"spring-mass setting 'fixed_springs' must be a whole number >= 0, got {self.fixed_springs!r}")
-        self.fixed_springs = min(int(self.fixed_springs), self.neighbours)
-        try:
-            self.softness = float(self.softness)
-        except (TypeError, ValueError):
-            raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}") from None
+    def check(self):
+        self.fixed_springs = min(self.fixed_springs, self.neighbours)
+        softness = as_number(self.softness)
+        if softness is None:
+            raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}")
+        self.softness = softness
         if math.isnan(self.softness) or self.softness == math.inf:
             raise UserError(f"spring-mass setting 'softness' must be a real number (or -inf), got {self.softness}")
-        if not (0.0 < float(self.safety) <= 1.0):
-            raise UserError(f"spring-mass setting 'safety' must lie in (0, 1], got {self.safety!r}")
-        if self.substeps is not None and (int(self.substeps) != self.substeps or self.substeps < 1):
-            raise UserError(f"spring-mass setting 'substeps' must be None or a positive whole number, got {self.substeps!r}")
-        if not (np.isfinite(self.stiffness_calibration) and self.stiffness_calibration > 0):
-            raise UserError("spring-mass setting 'stiffness_calibration' must be positive")
         if self.stiffness is not None:
             k = np.asarray(self.stiffness, dtype=np.float64).reshape(-1)
             if k.size == 0 or not np.all(np.isfinite(k)) or np.any(k <= 0):
