@@ -520,6 +520,16 @@ class MPMSimulation(Simulation):
                         wp.vec3i(*buf.grid_dims), 1.0 / self.dx]))
             self._record("rigid_mass", start)
 
+    def _moving_count(self, E: int, N: int, tuning: _Tuning) -> int:
+        """Particles that P2G and G2P visit (per environment): all ``N``, or with one environment, held rigid particles
+        scattered once per placement (``rigid_mass_once``) and cell sorting, those before the rigid ones, which the
+        sort puts last (``mpm_kernels.cell_keys``; the kernels would skip them).  The plain kernels only."""
+        rigid = self._rigid_particles
+        if (E == 1 and rigid and tuning.rigid_once and self.settings.sort_particles and tuning.scatter == "atomic"
+                and not tuning.split_g2p):
+            return N - rigid
+        return N
+
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
         """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
         wp, k = self._wp, self._k
@@ -527,10 +537,11 @@ class MPMSimulation(Simulation):
         n = E * N
         dims = wp.vec3i(*buf.grid_dims)
         nodes = int(np.prod(buf.grid_dims))
+        rigid_last = self._moving_count(E, N, self._run_tuning) < N
         start = self._mark()
-        self._frame_launch(buf, ("cell_keys", buf.parity, buf.grid_dims), lambda: wp.launch(
+        self._frame_launch(buf, ("cell_keys", buf.parity, buf.grid_dims, rigid_last), lambda: wp.launch(
             k.cell_keys, dim=n, device=self.device, record_cmd=True,
-            inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
+            inputs=[P["x"], P["code"], self._laws, buf.env["origin"], N, nodes, dims, 1.0 / self.dx, int(rigid_last)],
             outputs=[buf.sort_keys, buf.sort_values]))
         wp.utils.radix_sort_pairs(buf.sort_keys, buf.sort_values, n)
         names = [name for name, _ in _PARTICLE_FIELDS]
@@ -613,7 +624,8 @@ class MPMSimulation(Simulation):
     def _commands(self, buf: _Buffers, E: int, N: int, M_alloc: int, has_ground: int, ground_z: float,
                   tuning: _Tuning) -> _StepCommands:
         """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
-        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once)
+        moving = self._moving_count(E, N, tuning)
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once, moving)
         cmds = buf.commands.get(key)
         if cmds is not None:
             return cmds
@@ -623,9 +635,10 @@ class MPMSimulation(Simulation):
         nodes = int(np.prod(buf.grid_dims))
         dx = self.dx
         inv_dx = 1.0 / dx
-        n = E * N
+        n = E * moving  # threads of P2G and G2P: the held rigid particles, sorted last, are left out when E == 1
         bd = tuning.block_dim if str(dev).startswith("cuda") else None  # CPU kernels run thread by thread
-        p2g_dim = n
+        row = 1 if bd else buf.grid_dims[2]  # grid nodes per thread of grid_update: a row of nodes on the CPU
+        p2g_dim = max(n, 1)  # a launch of no threads records no command; threads >= n return at once
         if tuning.scatter == "warp":
             p2g_dim = self._cuda_kernels().padded_launch_dim(n)
         launches = [("p2g", wp.launch(self._p2g_kernel, dim=p2g_dim, device=dev, record_cmd=True, block_dim=bd,
@@ -636,9 +649,10 @@ class MPMSimulation(Simulation):
                                               self.contact_area, n, N, nodes, dims, dx, inv_dx,
                                               int(tuning.rigid_once), 0],
                                       outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
-                    ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
+                    ("grid_update", wp.launch(k.grid_update, dim=E * nodes // row, device=dev, record_cmd=True,
+                                              block_dim=bd,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
-                                                      Env["drag"], buf.step_base, nodes, 0, Env["ground"],
+                                                      Env["drag"], buf.step_base, nodes, row, 0, Env["ground"],
                                                       G["contact"], G["rigid"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
