@@ -20,7 +20,8 @@ momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the el
 fixed-corotated law only), :func:`grid_update` (forces, drag, the clamp; clears the
 accumulators for the next substep) and :func:`g2p` (gather, advection; also moves the tracked
 points).  Held particles of a rigid class (a clamped pot) never move and send only their mass: :func:`rigid_mass`
-scatters it once per grid placement and P2G skips them (setting ``rigid_mass_once``).  Environments whose frame needs fewer substeps than the launch count skip
+scatters it once per grid placement and P2G skips them (setting ``rigid_mass_once``); with one environment the
+sort puts them last (:func:`cell_keys`) and P2G and G2P are launched over the other particles alone.  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
 separate runs.  The substep index is the launch parameter ``substep`` plus the device counter
 ``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
