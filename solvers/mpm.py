@@ -520,17 +520,23 @@ class MPMSimulation(Simulation):
                         wp.vec3i(*buf.grid_dims), 1.0 / self.dx]))
             self._record("rigid_mass", start)
 
+    def _moving_count(self, E: int, N: int, tuning: _Tuning) -> int:
+        """Particles per environment that P2G and G2P visit: ``N``, or with one environment, ``rigid_mass_once``, cell
+        sorting and the plain kernels, those before the held rigid ones, which the sort puts last (``cell_keys``)."""
+        plain = tuning.scatter == "atomic" and not tuning.split_g2p and self.settings.sort_particles
+        return N - self._rigid_particles if E == 1 and tuning.rigid_once and plain else N
+
     def _sort(self, buf: _Buffers, E: int, N: int) -> None:
         """Reorder every particle field by grid cell (stable radix sort) into the spare buffer and swap buffers."""
         wp, k = self._wp, self._k
         P, S = buf.particles, buf.spare
         n = E * N
-        dims = wp.vec3i(*buf.grid_dims)
-        nodes = int(np.prod(buf.grid_dims))
+        dims, nodes = wp.vec3i(*buf.grid_dims), int(np.prod(buf.grid_dims))
+        rigid_last = self._moving_count(E, N, self._run_tuning) < N
         start = self._mark()
-        self._frame_launch(buf, ("cell_keys", buf.parity, buf.grid_dims), lambda: wp.launch(
+        self._frame_launch(buf, ("cell_keys", buf.parity, buf.grid_dims, rigid_last), lambda: wp.launch(
             k.cell_keys, dim=n, device=self.device, record_cmd=True,
-            inputs=[P["x"], buf.env["origin"], N, nodes, dims, 1.0 / self.dx],
+            inputs=[P["x"], P["code"], self._laws, buf.env["origin"], N, nodes, dims, 1.0 / self.dx, int(rigid_last)],
             outputs=[buf.sort_keys, buf.sort_values]))
         wp.utils.radix_sort_pairs(buf.sort_keys, buf.sort_values, n)
         names = [name for name, _ in _PARTICLE_FIELDS]
@@ -613,7 +619,8 @@ class MPMSimulation(Simulation):
     def _commands(self, buf: _Buffers, E: int, N: int, M_alloc: int, has_ground: int, ground_z: float,
                   tuning: _Tuning) -> _StepCommands:
         """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
-        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once)
+        moving = self._moving_count(E, N, tuning)
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once, moving)
         cmds = buf.commands.get(key)
         if cmds is not None:
             return cmds
@@ -621,13 +628,11 @@ class MPMSimulation(Simulation):
         P, T, G, Env = buf.particles, buf.tracked, buf.grid, buf.env
         dims = wp.vec3i(*buf.grid_dims)
         nodes = int(np.prod(buf.grid_dims))
-        dx = self.dx
-        inv_dx = 1.0 / dx
-        n = E * N
+        dx, inv_dx = self.dx, 1.0 / self.dx
+        n = E * moving  # P2G/G2P threads (held rigid ones sorted last, left out); P2G >= 1 (0 records no command)
         bd = tuning.block_dim if str(dev).startswith("cuda") else None  # CPU kernels run thread by thread
-        p2g_dim = n
-        if tuning.scatter == "warp":
-            p2g_dim = self._cuda_kernels().padded_launch_dim(n)
+        row = 1 if bd else buf.grid_dims[2]  # grid nodes per thread of grid_update: a row of nodes on the CPU
+        p2g_dim = self._cuda_kernels().padded_launch_dim(n) if tuning.scatter == "warp" else max(n, 1)
         launches = [("p2g", wp.launch(self._p2g_kernel, dim=p2g_dim, device=dev, record_cmd=True, block_dim=bd,
                                       inputs=[P["x"], P["v"], P["C"], P["H"], P["rot"], P["plastic"], P["mass"],
                                               P["vol"], P["mu"], P["lam"], P["code"], self._laws, Env["dt"],
@@ -636,9 +641,10 @@ class MPMSimulation(Simulation):
                                               self.contact_area, n, N, nodes, dims, dx, inv_dx,
                                               int(tuning.rigid_once), 0],
                                       outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
-                    ("grid_update", wp.launch(k.grid_update, dim=E * nodes, device=dev, record_cmd=True, block_dim=bd,
+                    ("grid_update", wp.launch(k.grid_update, dim=E * nodes // row, device=dev, block_dim=bd,
+                                              record_cmd=True,
                                               inputs=[G["mv"], G["held"], Env["dt"], Env["steps"], Env["acc"],
-                                                      Env["drag"], buf.step_base, nodes, 0, Env["ground"],
+                                                      Env["drag"], buf.step_base, nodes, row, 0, Env["ground"],
                                                       G["contact"], G["rigid"]],
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:

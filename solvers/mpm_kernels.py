@@ -20,7 +20,8 @@ momentum, fused; :data:`p2g_general`, or :data:`p2g_elastic` compiled for the el
 fixed-corotated law only), :func:`grid_update` (forces, drag, the clamp; clears the
 accumulators for the next substep) and :func:`g2p` (gather, advection; also moves the tracked
 points).  Held particles of a rigid class (a clamped pot) never move and send only their mass: :func:`rigid_mass`
-scatters it once per grid placement and P2G skips them (setting ``rigid_mass_once``).  Environments whose frame needs fewer substeps than the launch count skip
+scatters it once per grid placement and P2G skips them (setting ``rigid_mass_once``); with one environment the
+sort puts them last (:func:`cell_keys`) and P2G and G2P are launched over the other particles alone.  Environments whose frame needs fewer substeps than the launch count skip
 the extra ones (``substep >= env_steps[env]``), so a batch gives the same trajectories as
 separate runs.  The substep index is the launch parameter ``substep`` plus the device counter
 ``step_base[0]``: a captured CUDA graph of K substeps carries the offsets 0..K-1 and ends with
@@ -263,7 +264,12 @@ def _make_p2g(general: bool):
                 row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
                 for k in range(3):
                     weight = wij * w[k, 2]
-                    mom = weight * (aij + float(k) * cols[2])
+                    ak = aij  # aij + k cols[2], without the product by 0 (exact: the same sums)
+                    if k == 1:
+                        ak = aij + cols[2]
+                    elif k == 2:
+                        ak = aij + 2.0 * cols[2]
+                    mom = weight * ak
                     wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
                     if held:
                         wp.atomic_add(grid_held, row + k, weight * m)
@@ -314,11 +320,44 @@ def rigid_mass(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), code: wp
                 wp.atomic_add(grid_rigid, row + k, (wij * w[k, 2]) * m)
 
 
+@wp.func
+def grid_update_node(n: int, env: int, dt: float, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
+                     env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
+                     env_ground: wp.array(dtype=wp.vec3), grid_contact: wp.array(dtype=float),
+                     grid_rigid: wp.array(dtype=float), grid_v: wp.array(dtype=wp.vec4)):
+    """:func:`grid_update` at node ``n`` of environment ``env`` (substep ``dt``, s)."""
+    mv = grid_mv[n]
+    rigid = grid_rigid[n]
+    m = mv[3] + rigid
+    if m <= 0.0:
+        grid_v[n] = wp.vec4(0.0)
+    else:
+        vel = wp.vec3(mv[0], mv[1], mv[2]) / m + dt * env_acc[env]
+        drag = env_drag[env]
+        if drag[0] > 0.0:  # linear drag -c v, integrated exactly
+            vel = vel * wp.exp(-drag[0] * dt)
+        if drag[1] > 0.0:  # quadratic drag -k |v| v, implicit in |v| (unconditionally stable)
+            vel = vel / (1.0 + drag[1] * wp.length(vel) * dt)
+        if grid_held[n] + rigid >= HELD_MASS_FRACTION * m:
+            vel = wp.vec3(0.0)
+        jn = grid_contact[n]
+        if jn > 0.0:
+            mu = env_ground[env][2]
+            vt = wp.vec3(vel[0], vel[1], 0.0)
+            st = wp.length(vt)
+            if mu > 0.0 and st > 0.0:
+                vel = vel - vt * (wp.min(mu * jn / m, st) / st)
+            grid_contact[n] = 0.0
+        grid_v[n] = wp.vec4(vel[0], vel[1], vel[2], m)
+        grid_mv[n] = wp.vec4(0.0)
+        grid_held[n] = 0.0
+
+
 @wp.kernel
 def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
                 env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
                 env_acc: wp.array(dtype=wp.vec3), env_drag: wp.array(dtype=wp.vec2),
-                step_base: wp.array(dtype=wp.int32), nodes_per_env: int, substep: int,
+                step_base: wp.array(dtype=wp.int32), nodes_per_env: int, nodes_per_thread: int, substep: int,
                 env_ground: wp.array(dtype=wp.vec3), grid_contact: wp.array(dtype=float),
                 grid_rigid: wp.array(dtype=float), grid_v: wp.array(dtype=wp.vec4)):
     """Node velocities from momentum; gravity + extra acceleration, drag, held nodes, and Coulomb friction with
@@ -327,38 +366,18 @@ def grid_update(grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=floa
     ``grid_rigid``: the node's mass from held rigid particles (:func:`rigid_mass`; zero where P2G scattered them),
     added to its mass and held mass.
 
+    Thread ``t`` updates nodes ``t · nodes_per_thread`` onwards, ``nodes_per_thread`` of them (a divisor of
+    ``nodes_per_env``: 1 on a GPU; a row of nodes on the CPU, where a thread per node costs more than the update).
     Writes (velocity, mass) to ``grid_v`` and clears the accumulators for the next substep.
     """
-    n = wp.tid()
-    env = n / nodes_per_env
+    first = wp.tid() * nodes_per_thread
+    env = first / nodes_per_env
     if substep + step_base[0] >= env_steps[env]:
         return
-    mv = grid_mv[n]
-    rigid = grid_rigid[n]
-    m = mv[3] + rigid
-    if m <= 0.0:
-        grid_v[n] = wp.vec4(0.0)
-        return
     dt = env_dt[env]
-    vel = wp.vec3(mv[0], mv[1], mv[2]) / m + dt * env_acc[env]
-    drag = env_drag[env]
-    if drag[0] > 0.0:  # linear drag -c v, integrated exactly
-        vel = vel * wp.exp(-drag[0] * dt)
-    if drag[1] > 0.0:  # quadratic drag -k |v| v, implicit in |v| (unconditionally stable)
-        vel = vel / (1.0 + drag[1] * wp.length(vel) * dt)
-    if grid_held[n] + rigid >= HELD_MASS_FRACTION * m:
-        vel = wp.vec3(0.0)
-    jn = grid_contact[n]
-    if jn > 0.0:
-        mu = env_ground[env][2]
-        vt = wp.vec3(vel[0], vel[1], 0.0)
-        st = wp.length(vt)
-        if mu > 0.0 and st > 0.0:
-            vel = vel - vt * (wp.min(mu * jn / m, st) / st)
-        grid_contact[n] = 0.0
-    grid_v[n] = wp.vec4(vel[0], vel[1], vel[2], m)
-    grid_mv[n] = wp.vec4(0.0)
-    grid_held[n] = 0.0
+    for n in range(first, first + nodes_per_thread):
+        grid_update_node(n, env, dt, grid_mv, grid_held, env_acc, env_drag, env_ground, grid_contact, grid_rigid,
+                         grid_v)
 
 
 @wp.func(inline=True)
@@ -458,9 +477,19 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                     gv = grid_v[row + k]
                     wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
                     vel = vel + wv
-                    bi = bi + float(i) * wv
-                    bj = bj + float(j) * wv
-                    bk = bk + float(k) * wv
+                    # bi += i wv (and bj, bk), with the offsets' products by 0 and 1 left out (exact: same sums)
+                    if i == 1:
+                        bi = bi + wv
+                    elif i == 2:
+                        bi = bi + 2.0 * wv
+                    if j == 1:
+                        bj = bj + wv
+                    elif j == 2:
+                        bj = bj + 2.0 * wv
+                    if k == 1:
+                        bk = bk + wv
+                    elif k == 2:
+                        bk = bk + 2.0 * wv
         particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, rigid_floor(has_ground, env_ground[env]),
                         ground_z, x, v, C)
         return
@@ -629,13 +658,22 @@ def frame_stats(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp
 
 
 @wp.kernel
-def cell_keys(x: wp.array(dtype=wp.vec3), env_origin: wp.array(dtype=wp.vec3), n_per_env: int, nodes_per_env: int,
-              dims: wp.vec3i, inv_dx: float, keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32)):
-    """Sort keys: the node index of each particle's stencil centre (environment blocks in order)."""
+def cell_keys(x: wp.array(dtype=wp.vec3), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+              env_origin: wp.array(dtype=wp.vec3), n_per_env: int, nodes_per_env: int, dims: wp.vec3i, inv_dx: float,
+              rigid_last: int, keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32)):
+    """Sort keys: the node index of each particle's stencil centre (environment blocks in order).
+
+    ``rigid_last`` = 1 (one environment only): the held particles of rigid classes get keys after every other
+    particle's (+ ``nodes_per_env``), so the stable sort puts them at the end, the others in the same order as
+    without it, and P2G and G2P can be launched over the others alone (they skip rigid particles anyway)."""
     p = wp.tid()
     env = p / n_per_env
     xp = x[p]
     key = env * nodes_per_env
+    c = code[p]
+    if rigid_last != 0 and c >= HELD_FLAG:
+        if laws[c % HELD_FLAG].held != 0:
+            key = key + nodes_per_env
     if wp.isfinite(xp):
         b = stencil_base(xp, env_origin[env], inv_dx)
         i = wp.clamp(int(b[0]) + 1, 0, dims[0] - 1)

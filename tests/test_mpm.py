@@ -150,6 +150,33 @@ def test_rigid_mass_scattered_once_matches_every_substep():
     np.testing.assert_array_equal(sim.run([]).positions, once.positions)
 
 
+def test_rigid_particles_sorted_last_are_left_out_of_the_substep_kernels(monkeypatch):
+    """With one environment, ``rigid_mass_once`` and cell sorting, the held rigid particles are sorted after the
+    others and P2G and G2P are launched over the others alone (and grid_update a row of nodes per CPU thread): the
+    same trajectory, bitwise, as launching them over every particle in the plain cell order."""
+    field = _jelly_on_stationary_layer(axis=2)
+    points = lattice((8, 8, 8), 0.0125)
+    body = Body(points=points, point_volume=0.0125 ** 3, tracked_points=points[::7])
+    sc = Scenario(gravity=[0, 0, -G], ground_height=0.0, initial_velocity=[0.5, 0.0, 0.0])
+    sim = mpm.prepare(body, field, sc, np.linspace(0.0, 0.1, 5))
+    left_out = sim.run([])
+    buf = sim._buffer_sets[1]
+    rigid = np.asarray(sim._laws.numpy()["held"])[buf.particles["code"].numpy() % 16] != 0
+    assert rigid.sum() == sim._rigid_particles == 128 and rigid[-128:].all()  # sorted last
+    moving = sim.particle_count - 128
+    M = len(body.tracked_points)
+    dims = {name: cmd.bounds.size for name, cmd in next(iter(buf.commands.values())).launches}
+    assert dims["p2g"] == moving and dims["g2p"] == moving + M
+    assert dims["grid_update"] * buf.grid_dims[2] == int(np.prod(buf.grid_dims))
+    monkeypatch.setattr(sim, "_moving_count", lambda E, N, tuning: N)
+    every = sim.run([])
+    buf = sim._buffer_sets[1]
+    rigid = np.asarray(sim._laws.numpy()["held"])[buf.particles["code"].numpy() % 16] != 0
+    assert not rigid[-128:].all()  # the plain cell order
+    assert np.abs(every.positions[-1] - every.positions[0]).max() > 1e-3  # the jelly swings
+    np.testing.assert_array_equal(left_out.positions, every.positions)
+
+
 def test_rerun_with_rigid_parts_after_the_grid_grew_is_the_same():
     """A re-run starts on the grid arrays the first run grew (a jelly block flying away from a stationary one); the
     rigid mass, recorded per grid size, must land in the new arrays, not in the ones the first chunk used."""
