@@ -102,9 +102,9 @@ QUICK = DemoPlan("quick", views=6, resolution=224, frames=12, fps=24, mpm_budget
                  sheet_size=(480, 240))
 BAKE_ORDER = ("spring_mass", "mpm", "lbs")
 """The demo's bakes start in this order (they run side by side on the CPU cores).  Measured on 2 idle cores in the
-full demo (2026-11-27, sixth session): spring-mass 40.6 s (the bake default of 2048 anchors; 43–53 s before each
-spring's force was computed once), each MPM plant 40–43 s, the LBS duck 11 s — two at a time, the bakes end after
-about 93 s in any order that starts the spring-mass or an MPM plant first."""
+full demo (2026-11-27, sixth session): spring-mass 40–54 s (the bake default of 2048 anchors), each MPM plant 33–48 s,
+the LBS duck 12–17 s (the shared cores' speed varies by 10–30 % between runs) — two at a time, the bakes end after
+83–101 s in any order that starts the spring-mass or an MPM plant first."""
 
 BLEND_NAME = "unipixie_demo.blend"
 SHEET_NAME = "contact_sheet.png"
