@@ -334,8 +334,8 @@ def estimate_noise(positions: np.ndarray, rest_positions: Optional[np.ndarray] =
       motion of :data:`NOISE_NEIGHBOURS` neighbours, and the local quadratic motion of
       :data:`NOISE_NEIGHBOURS_QUADRATIC` (a solid that rings after a bounce bends between its neighbours).
 
-    Motion that is neither smooth in time nor locally quadratic in space makes all of them upper bounds (conservative for
-    significance tests).  Measured on synthetic tracks with known σ (``tests/test_noise_estimate.py``) and on
+    Motion that is neither smooth in time nor locally quadratic in space makes all of them upper bounds
+    (conservative for significance tests).  Measured on synthetic tracks with known σ (``tests/test_noise_estimate.py``) and on
     the synthetic drops of ``docs/diagnosis.md``.
     """
     pos = np.asarray(positions, dtype=np.float64)

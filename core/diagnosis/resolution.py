@@ -23,9 +23,10 @@ What refinement changes that a different E/ρ would change as well is not a floo
 resolution it runs, so a discretisation error that only makes the solid stiffer or softer (shear locking, a
 coarse network's bending stiffness) is taken up by the base fit and shows only as a biased E.  Before the two
 trajectories are compared the finer model's E/ρ is therefore refitted to the coarse model's trajectory
-(:func:`absorb_base_scale`: a batch of scales ×⅔ … ×1.5, then the parabola through the best three); the floor is
-what remains, and the factor is reported (the coarse model's E/ρ times it is the finer model's).  Measured on
-the validation's clamped bar with a stiffer half (MPM, 12 → 18 cells across): 19.7 mm moved before the refit.
+(:func:`absorb_base_scale`: a batch of scales ×⅔ … ×1.5, then up to two parabola steps through the best three);
+the floor is what remains, and the factor is reported (the coarse model's E/ρ times it is the finer model's).
+Measured on the validation's clamped bar with a stiffer half (MPM, 12 → 18 cells across): 19.7 mm at the same E/ρ,
+4.1 mm after the refit (the factor at the batch's edge, ×1.5: an upper bound).
 
 The floor is an estimate from one refinement step (the finer model's own error is not known); it is reported
 as such in ``diagnosis.json`` (``resolution``), the summary and the HTML page.
@@ -173,8 +174,8 @@ REFIT_FACTORS = (2.0 / 3.0, 0.82, 1.22, 1.5)
 REFIT_PARABOLAS = 2
 """Parabola steps after the batch (each one finer run)."""
 REFIT_BUDGET_S = 30.0
-"""Seconds of finer simulation the E/ρ refit may take (:data:`REFIT_FACTORS` plus :data:`REFIT_PARABOLAS`); above that the floor is
-measured at the same E/ρ (an upper bound)."""
+"""Seconds of finer simulation the E/ρ refit may take (:data:`REFIT_FACTORS` plus :data:`REFIT_PARABOLAS` runs);
+above that the floor is measured at the same E/ρ (an upper bound)."""
 
 
 def _sse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:

@@ -33,11 +33,12 @@ EXPLAINED_WITHIN = 2.0
 
 FAR_ABOVE_NOISE = 10.0
 """An effect is not named when, with it and every later addition, the model's RMSE (over every observed sample, as
-the verdict judges it) stays more than this many times the noise floor: it is then only the least bad of the registry, and the verdict says that
-no effect explains the difference (issue 18).  An order of magnitude: a base model close to the truth but not
-identical to it leaves a few noise floors (measured on the independent referee: 1–3× after the right effect, the
-spring-mass network's plastic bar 3×); a missing physical law that no effect describes leaves tens (a bouncing
-drop on a floor that keeps energy: 24×)."""
+the verdict judges it) stays more than this many times the noise floor: it is then only the least bad of the
+registry, and the verdict says that no effect explains the difference (issue 18).  An order of magnitude: a base
+model close to the truth but not identical to it leaves a few noise floors (measured on the independent referee:
+1–3× after the right effect, the spring-mass network's plastic bar 3×); a missing physical law that no effect
+describes leaves tens (the spring-mass network's cube bouncing on a floor that keeps energy: 22× after a stiffer
+region was fitted)."""
 
 DIRECTION_SHARE = 0.6
 """The remaining error is said to lie along one axis when that axis holds at least this share of it."""
