@@ -21,6 +21,28 @@ os.environ["UNIPIXIE_CACHE_DIR"] = os.path.join(_SESSION_TMP, "cache")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
+class _RepositoryRootIsAFolder:
+    """Collect the checkout's root as a plain folder, never as a test package.
+
+    The root's ``__init__.py`` is the Blender extension's entry point, so pytest would collect the root as a
+    package named after the folder the checkout sits in, and import it for its set-up.  A clone in a folder
+    whose name is no Python module name (``git clone … "$(mktemp -d)"`` gives ``tmp.XXXX``) then fails every
+    test at the root's relative imports.  The tests import the package as ``unipixie`` (the editable install).
+    A conftest's hooks only reach the folders below it; the root is collected through its parent's hooks,
+    hence a plugin registered for the whole session (``pytest_configure`` below).
+    """
+
+    @pytest.hookimpl(tryfirst=True)
+    def pytest_collect_directory(self, path, parent):
+        if Path(path).resolve() == REPO_ROOT:
+            return pytest.Dir.from_parent(parent, path=Path(path))
+        return None
+
+
+def pytest_configure(config):
+    config.pluginmanager.register(_RepositoryRootIsAFolder(), "unipixie-repository-root-is-a-folder")
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
