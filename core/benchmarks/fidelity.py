@@ -45,7 +45,9 @@ _SPRING = [("512 anchors", {"anchors": 512}, False, "fast"),
 _LBS = [("200 cubature points", {"cubature_points": 200}, False, "fast"),
         ("500 cubature points", {}, True, "fast"),
         ("1500 cubature points", {"cubature_points": 1500}, False, "fast"),
-        ("500 points, 1 ms steps", {"max_dt": 1e-3}, False, "fast")]
+        ("500 points, 5 ms steps", {"max_dt": 5e-3}, False, "fast"),
+        ("500 points, 1 ms steps", {"max_dt": 1e-3}, False, "fast"),
+        ("500 points, 0.5 ms steps", {"max_dt": 5e-4}, False, "full")]
 _MPM_BAR = [("2 cells across the thickness", {"dx": 0.01}, False, "full"),
             ("3 cells across the thickness", {"dx": 0.02 / 3}, False, "full"),
             ("bake default (4 cells across the thinnest part)", {}, True, "full"),
@@ -54,7 +56,7 @@ LADDERS = {
     "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
     "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
     "drop": {"mpm": _MPM_CUBE, "spring_mass": _SPRING, "lbs": _LBS},
-    "slide": {"mpm": _MPM_CUBE[:3], "spring_mass": _SPRING[:2], "lbs": _LBS[:2]},
+    "slide": {"mpm": _MPM_CUBE[:3], "spring_mass": _SPRING[:2], "lbs": _LBS[:2] + _LBS[3:4]},
     "drag_linear": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
     "drag_quadratic": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
 }
@@ -174,6 +176,7 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -192,16 +195,17 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
             ax.axhline(ref, color="k", lw=1)
             for solver in SOLVER_NAMES:
                 pts = [r for r in sub if r["solver"] == solver]
-                if not pts:
-                    continue
-                xs = np.arange(len(pts))
-                ax.plot(xs, [r["value"] for r in pts], "o-", color=colours[solver], label=solver)
-                for x, r in zip(xs, pts):
-                    if r.get("default"):
-                        ax.plot([x], [r["value"]], "o", ms=13, mfc="none", mec=colours[solver])
-                    ax.annotate(r["resolution"], (x, r["value"]), fontsize=6, rotation=20,
-                                xytext=(3, 3), textcoords="offset points")
+                for number, (varied, series) in enumerate(refinement_series(solver, pts)):
+                    xs = np.arange(len(series))
+                    ax.plot(xs, [r["value"] for r in series], "o-" if number == 0 else "s--", color=colours[solver],
+                            label=solver if number == 0 else f"{solver}: {varied}")
+                    for x, r in zip(xs, series):
+                        if r.get("default"):
+                            ax.plot([x], [r["value"]], "o", ms=13, mfc="none", mec=colours[solver])
+                        ax.annotate(r["resolution"], (x, r["value"]), fontsize=6, rotation=20,
+                                    xytext=(3, 3), textcoords="offset points")
             ax.set_title(f"{scene}: {metric}\nreference: {sub[0]['reference_source']}", fontsize=8)
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.set_xlabel("refinement level (coarse → fine; circled: bake default)")
             ax.set_ylabel(f"{metric} ({sub[0].get('unit', '')})")
             ax.legend(fontsize=7)
@@ -211,6 +215,36 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+COARSER_WHEN_LARGER = ("max_dt", "dx")
+"""Settings whose larger value is the coarser run (a step, a cell size); the others refine as they grow."""
+
+
+def refinement_series(solver: str, rows: list) -> list:
+    """A solver's rows of one metric split into refinement series, one per setting the ladder varies (LBS's
+    cubature points and its time step), each ordered coarse → fine with the bake default (settings ``{}``) in
+    every series at its own value.  Returns [(setting name or "", rows)]; one series when the ladder varies one
+    setting (or when a default's value is not known, kept in the given order)."""
+    from ...solvers.registry import SOLVERS
+
+    varied = []
+    for r in rows:
+        for name in (r.get("settings") or {}):
+            if name not in varied:
+                varied.append(name)
+    if len(varied) < 2:
+        return [("".join(varied), rows)] if rows else []
+    defaults = SOLVERS[solver].defaults()
+    out = []
+    for name in varied:
+        series = [r for r in rows if set(r.get("settings") or {}) in ({name}, set())]
+        values = [(r.get("settings") or {}).get(name, getattr(defaults, name, None)) for r in series]
+        if all(v is not None for v in values):
+            order = sorted(range(len(series)), key=lambda i: values[i], reverse=name in COARSER_WHEN_LARGER)
+            series = [series[i] for i in order]
+        out.append((name, series))
+    return out
 
 
 def summary_table(results: list[dict]) -> str:
