@@ -52,6 +52,7 @@ from ..core.progress import Progress
 from ..core.types import Trajectory
 from ..solvers import materials
 from ..solvers.materials import p_wave_factor
+from ..solvers.lbs_settings import DEFAULT_MAX_DT as DEFAULT_LBS_MAX_DT
 from ..core import annotation as ann_mod
 
 GROUND_TRUTH_VERSION = 1
@@ -70,7 +71,8 @@ class GroundTruthSettings:
         module docstring.
     tracked_points: at most this many mesh vertices are tracked (0 = all).
     spring_anchors: N_a of the spring-mass network (the model's spring head must be configured alike).
-    lbs_cubature_points / lbs_mass_samples: LBS solver sample counts; lbs_max_dt: its largest (implicit) step, s.
+    lbs_cubature_points / lbs_mass_samples: LBS solver sample counts; lbs_max_dt: its largest (implicit) step, s
+        (the solver's default; datasets built before 2026-11-27 record 5 ms, whose step-capped floor was soft).
     fit_step / fit_bound / fit_evaluations: the scale fit searches log10 s in [-fit_bound, fit_bound],
         first at 0 and ±fit_step, with at most ``fit_evaluations`` simulations per end.
     extra_alphas: further α values simulated with MPM (the evaluation compares solvers at α = 0.5).
@@ -87,7 +89,7 @@ class GroundTruthSettings:
     spring_anchors: int = 256
     lbs_cubature_points: int = 200
     lbs_mass_samples: int = 2000
-    lbs_max_dt: float = 5.0e-3
+    lbs_max_dt: float = DEFAULT_LBS_MAX_DT
     fit_step: float = 0.4
     fit_bound: float = 1.6
     fit_evaluations: int = 5
