@@ -216,7 +216,10 @@ def test_panel_states_the_chosen_solvers_measured_floor(panel):
         labels = [c[1] for c in _draw_calls(bpy) if c[0] == "label"]
         shown[solver] = [t.strip() for t in labels if t.strip() in floor_lines(solver)]
         assert shown[solver] == floor_lines(solver), solver
-    assert "static bending sag -19 %" in shown["lbs"] and "drop rebound height +11 %" in shown["lbs"]
+    # the measured figures of benchmarks/fidelity.json (LBS's drop rebound, +11 % at its former 5 ms step, is +1.4 %
+    # at 2.5 ms and no longer stated)
+    assert "static bending sag -19 %" in shown["lbs"] and "ground contact time +9 %" in shown["lbs"]
+    assert not any("rebound" in line for line in shown["lbs"])
 
 
 def test_alpha_slider_recolours_from_the_sweep_in_under_50_ms_with_a_monotone_legend(panel, tmp_path):
