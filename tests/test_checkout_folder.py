@@ -11,16 +11,14 @@ import shutil
 import subprocess
 import sys
 
-from conftest import REPO_ROOT
 
-
-def test_a_checkout_in_a_folder_with_a_dot_in_its_name_runs_its_tests(tmp_path):
+def test_a_checkout_in_a_folder_with_a_dot_in_its_name_runs_its_tests(tmp_path, repo_root):
     checkout = tmp_path / "tmp.Ab3.d" / "unipixie.clone"
     (checkout / "tests").mkdir(parents=True)
     # The root as it is: the package's __init__.py (relative imports) and the pytest configuration.
     for name in ("__init__.py", "pyproject.toml"):
-        shutil.copy(REPO_ROOT / name, checkout / name)
-    shutil.copy(REPO_ROOT / "tests" / "conftest.py", checkout / "tests" / "conftest.py")
+        shutil.copy(repo_root / name, checkout / name)
+    shutil.copy(repo_root / "tests" / "conftest.py", checkout / "tests" / "conftest.py")
     (checkout / "tests" / "test_probe.py").write_text(
         "def test_probe(repo_root):\n    assert (repo_root / 'tests' / 'test_probe.py').is_file()\n")
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=checkout,
