@@ -88,6 +88,17 @@ def stencil_base(xp: wp.vec3, origin: wp.vec3, inv_dx: float):
 
 
 @wp.func
+def plus_offset_times(acc: wp.vec3, offset: int, v: wp.vec3):
+    """acc + offset · v for a stencil offset 0, 1 or 2 (m/s or m·kg/s alike), without the products by 0 and 1: the
+    same sums as ``acc + float(offset) * v``, a few multiplications fewer in the 27-node loops."""
+    if offset == 1:
+        return acc + v
+    if offset == 2:
+        return acc + 2.0 * v
+    return acc
+
+
+@wp.func
 def stencil_inside(base: wp.vec3, dims: wp.vec3i):
     return (base[0] >= 0.0 and base[1] >= 0.0 and base[2] >= 0.0 and base[0] <= float(dims[0] - 3)
             and base[1] <= float(dims[1] - 3) and base[2] <= float(dims[2] - 3))
@@ -264,12 +275,7 @@ def _make_p2g(general: bool):
                 row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
                 for k in range(3):
                     weight = wij * w[k, 2]
-                    ak = aij  # aij + k cols[2], without the product by 0 (exact: the same sums)
-                    if k == 1:
-                        ak = aij + cols[2]
-                    elif k == 2:
-                        ak = aij + 2.0 * cols[2]
-                    mom = weight * ak
+                    mom = weight * plus_offset_times(aij, k, cols[2])
                     wp.atomic_add(grid_mv, row + k, wp.vec4(mom[0], mom[1], mom[2], weight * m))
                     if held:
                         wp.atomic_add(grid_held, row + k, weight * m)
@@ -477,19 +483,9 @@ def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtyp
                     gv = grid_v[row + k]
                     wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
                     vel = vel + wv
-                    # bi += i wv (and bj, bk), with the offsets' products by 0 and 1 left out (exact: same sums)
-                    if i == 1:
-                        bi = bi + wv
-                    elif i == 2:
-                        bi = bi + 2.0 * wv
-                    if j == 1:
-                        bj = bj + wv
-                    elif j == 2:
-                        bj = bj + 2.0 * wv
-                    if k == 1:
-                        bk = bk + wv
-                    elif k == 2:
-                        bk = bk + 2.0 * wv
+                    bi = plus_offset_times(bi, i, wv)
+                    bj = plus_offset_times(bj, j, wv)
+                    bk = plus_offset_times(bk, k, wv)
         particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, rigid_floor(has_ground, env_ground[env]),
                         ground_z, x, v, C)
         return
