@@ -234,7 +234,7 @@ def refinement_series(solver: str, rows: list) -> list:
             if name not in varied:
                 varied.append(name)
     if len(varied) < 2:
-        return [("".join(varied), rows)] if rows else []
+        return [(varied[0] if varied else "", rows)] if rows else []
     defaults = SOLVERS[solver].defaults()
     out = []
     for name in varied:
