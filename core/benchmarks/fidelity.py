@@ -88,14 +88,21 @@ def load_referee(path) -> dict:
 
 
 def run_scene(scene, solver: str, settings: dict, device: str):
-    """(measurements, trajectory, wall seconds) of one scene run."""
+    """(measurements, trajectory, wall seconds) of one scene run; a scene with a ``settle`` companion runs it too
+    and merges its measurements (the trajectory and the cross-solver comparison are the main run's)."""
     from ...solvers import api
 
     t0 = time.perf_counter()
     traj = api.simulate(solver, scene.body, scene.material, scene.scenario, scene.frame_times, scene.effects,
                         device=device, settings=dict(settings))
+    measured = scene.measure(traj)
+    if scene.settle is not None:  # the static figures from the companion run (its trajectory is not kept)
+        s = scene.settle
+        settled = api.simulate(solver, s.body, s.material, s.scenario, s.frame_times, s.effects, device=device,
+                               settings=dict(settings))
+        measured.update(s.measure(settled))
     wall = time.perf_counter() - t0
-    return scene.measure(traj), traj, wall
+    return measured, traj, wall
 
 
 def trajectory_rmse(a: np.ndarray, b: np.ndarray) -> float:
@@ -125,6 +132,10 @@ def run(args) -> list[dict]:
     for name in scenes:
         scene = _scenes.scene(name)
         refs = {k: v for k, v in scene.reference.items()}
+        units = dict(scene.units)
+        if scene.settle is not None:
+            refs.update(scene.settle.reference)
+            units.update(scene.settle.units)
         for metric, value in referee.get(name, {}).items():
             if metric not in refs and isinstance(value, (int, float)):
                 refs[metric] = (float(value), "independent referee (converged)")
@@ -148,7 +159,7 @@ def run(args) -> list[dict]:
                     at_default[solver] = traj.positions
                 for metric, value in measured.items():
                     entry = {"case": f"{name}: {solver}, {label}", "device": described, "metric": metric,
-                             "value": float(value), "unit": scene.units.get(metric, ""), "runs": 1,
+                             "value": float(value), "unit": units.get(metric, ""), "runs": 1,
                              "scene": name, "solver": solver, "resolution": label, "settings": settings,
                              "default": default, "wall_s": round(wall, 2)}
                     if metric in refs:
