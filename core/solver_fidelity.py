@@ -64,7 +64,8 @@ DRIFTS: dict = {
 }
 """solver → (scene, how far the mean an undamped oscillation swings about moves per period, as a fraction of the
 static sag) at the bake default, where it is above 1 %: MPM's bar across its thin side sinks 0.22 mm (2.4 % of its
-9.0 mm sag) per period while it swings (docs/fidelity.md, "MPM's creep"); ``mean_drift_per_period`` rows of
+9.0 mm sag) per period while it swings (docs/fidelity.md, "MPM's creep": F updated with APIC's affine matrix; the
+setting ``deformation_gradient="grid"`` removes it, not yet the default); ``mean_drift_per_period`` rows of
 ``benchmarks/fidelity.json``."""
 
 

@@ -629,6 +629,8 @@ class MPMSimulation(Simulation):
         dims = wp.vec3i(*buf.grid_dims)
         nodes = int(np.prod(buf.grid_dims))
         dx, inv_dx = self.dx, 1.0 / self.dx
+        grid_gradient = self.settings.deformation_gradient == "grid"
+        g2p = k.g2p_grid if grid_gradient else k.g2p
         n = E * moving  # P2G/G2P threads (held rigid ones sorted last, left out); P2G >= 1 (0 records no command)
         bd = tuning.block_dim if str(dev).startswith("cuda") else None  # CPU kernels run thread by thread
         row = 1 if bd else buf.grid_dims[2]  # grid nodes per thread of grid_update: a row of nodes on the CPU
@@ -639,7 +641,7 @@ class MPMSimulation(Simulation):
                                               Env["steps"], Env["yield"], Env["eta"], Env["origin"], buf.step_base,
                                               Env["ground"], has_ground, ground_z, self.contact_radius,
                                               self.contact_area, n, N, nodes, dims, dx, inv_dx,
-                                              int(tuning.rigid_once), 0],
+                                              int(tuning.rigid_once), int(not grid_gradient), 0],
                                       outputs=[G["mv"], G["held"], G["contact"], buf.lost])),
                     ("grid_update", wp.launch(k.grid_update, dim=E * nodes // row, device=dev, block_dim=bd,
                                               record_cmd=True,
@@ -649,21 +651,22 @@ class MPMSimulation(Simulation):
                                               outputs=[G["v"]]))]
         if tuning.split_g2p:
             kc = self._cuda_kernels()
-            launches.append(("g2p", wp.launch(kc.g2p_particles, dim=n, device=dev, record_cmd=True, block_dim=bd,
-                                              inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, G["v"],
+            g2p_particles = kc.g2p_particles_grid if grid_gradient else kc.g2p_particles
+            launches.append(("g2p", wp.launch(g2p_particles, dim=n, device=dev, record_cmd=True, block_dim=bd,
+                                              inputs=[P["x"], P["v"], P["C"], P["H"], P["code"], self._laws, G["v"],
                                                       Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, nodes,
                                                       dims, dx, inv_dx, has_ground, ground_z, Env["ground"],
                                                       0])))
             if len(self.tracked_rest):  # the combined kernel over the tracked points alone (n_particles = 0)
                 launches.append(("g2p_tracked", wp.launch(
-                    k.g2p, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
-                    inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
+                    g2p, dim=E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
+                    inputs=[P["x"], P["v"], P["C"], P["H"], P["code"], self._laws, T["x"], T["v"], T["held"], G["v"],
                             Env["dt"], Env["steps"], Env["origin"], buf.step_base, N, 0, M_alloc, nodes, dims, dx,
                             inv_dx, has_ground, ground_z, Env["ground"], 0])))
         else:
-            launches.append(("g2p", wp.launch(k.g2p, dim=n + E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
-                                              inputs=[P["x"], P["v"], P["C"], P["code"], self._laws, T["x"], T["v"],
-                                                      T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"],
+            launches.append(("g2p", wp.launch(g2p, dim=n + E * M_alloc, device=dev, record_cmd=True, block_dim=bd,
+                                              inputs=[P["x"], P["v"], P["C"], P["H"], P["code"], self._laws, T["x"],
+                                                      T["v"], T["held"], G["v"], Env["dt"], Env["steps"], Env["origin"],
                                                       buf.step_base, N, n, M_alloc, nodes, dims, dx, inv_dx,
                                                       has_ground, ground_z, Env["ground"], 0])))
         cmds = buf.commands[key] = _StepCommands(launches)

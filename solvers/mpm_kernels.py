@@ -81,6 +81,14 @@ def bspline_weights(fx: wp.vec3):
 
 
 @wp.func
+def bspline_slopes(fx: wp.vec3):
+    """d/d(fx) of :func:`bspline_weights` (per cell; divide by Δx for per metre), same layout."""
+    return wp.mat33(fx[0] - 1.5, fx[1] - 1.5, fx[2] - 1.5,
+                    2.0 * (1.0 - fx[0]), 2.0 * (1.0 - fx[1]), 2.0 * (1.0 - fx[2]),
+                    fx[0] - 0.5, fx[1] - 0.5, fx[2] - 0.5)
+
+
+@wp.func
 def stencil_base(xp: wp.vec3, origin: wp.vec3, inv_dx: float):
     """Lower corner (node indices) of the 3×3×3 stencil of a point, as float vector."""
     g = (xp - origin) * inv_dx
@@ -143,13 +151,16 @@ def displacement_gradient_update(H: wp.mat33, G: wp.mat33):
 def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, H: wp.array(dtype=wp.mat33),
                             rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
                             lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
-                            env_eta: wp.array(dtype=float)):
+                            env_eta: wp.array(dtype=float), update_f: int):
     """Deformation update F ← (I + Δt C) F, the class's law and Kelvin–Voigt viscosity of one deforming particle.
 
     ``H`` holds each particle's displacement gradient H = F − I (see :func:`displacement_gradient_update`).
+    ``update_f`` = 0: G2P has updated H already (setting ``deformation_gradient = "grid"``); the law acts on it.
     Writes the particle's new H, rotation and plastic state; returns its Kirchhoff stress τ, Pa.
     """
-    Hn = displacement_gradient_update(H[p], dt * Cp)
+    Hn = H[p]
+    if update_f != 0:
+        Hn = displacement_gradient_update(Hn, dt * Cp)
     Fn = wp.identity(n=3, dtype=float) + Hn
     tau, Fe, q, state, J = constitutive_update(law, Fn, rot[p], plastic[p], mu_p[p], lam_p[p], env_yield[env])
     plastic[p] = state
@@ -165,9 +176,11 @@ def particle_stress_general(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.m
 def particle_stress_elastic(p: int, env: int, dt: float, law: ClassLaw, Cp: wp.mat33, H: wp.array(dtype=wp.mat33),
                             rot: wp.array(dtype=wp.quat), plastic: wp.array(dtype=float), mu_p: wp.array(dtype=float),
                             lam_p: wp.array(dtype=float), env_yield: wp.array(dtype=float),
-                            env_eta: wp.array(dtype=float)):
+                            env_eta: wp.array(dtype=float), update_f: int):
     """:func:`particle_stress_general` for the elastic fixed-corotated law only (same results for such particles)."""
-    Hn = displacement_gradient_update(H[p], dt * Cp)
+    Hn = H[p]
+    if update_f != 0:
+        Hn = displacement_gradient_update(Hn, dt * Cp)
     tau, q, J = elastic_fixed_corotated(wp.identity(n=3, dtype=float) + Hn, rot[p], mu_p[p], lam_p[p])
     eta = env_eta[env]
     if eta > 0.0:
@@ -221,13 +234,14 @@ def _make_p2g(general: bool):
             env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
             contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
-            rigid_static: int, substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
-            grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
+            rigid_static: int, update_f: int, substep: int, grid_mv: wp.array(dtype=wp.vec4),
+            grid_held: wp.array(dtype=float), grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
         """Deformation update, plasticity, stress, the ground's contact impulse and the fused scatter of mass and
         momentum (one atomic per node; the contact impulse also to ``grid_contact``, N·s, for friction).
 
         ``rigid_static`` = 1: held particles of a rigid class are skipped; their mass is on the grid already
-        (:func:`rigid_mass`, once per grid placement)."""
+        (:func:`rigid_mass`, once per grid placement).  ``update_f`` = 0: G2P updated the deformation already
+        (``deformation_gradient = "grid"``)."""
         p = wp.tid()
         if p >= n_particles:  # padding of a launch rounded up to whole warps
             return
@@ -255,9 +269,11 @@ def _make_p2g(general: bool):
         tau = wp.mat33(0.0)
         if law.held == 0:
             if wp.static(general):
-                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta,
+                                              update_f)
             else:
-                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta,
+                                              update_f)
 
         w, cols, a0, jn = particle_transfer(p, env, dt, tau, Cp, m, vol, v, mu_p, lam_p, env_eta, xp, origin, base,
                                             held, has_ground, ground_z, contact_radius, contact_area, env_ground, dx,
@@ -410,159 +426,195 @@ def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3
     v[tid] = vel
 
 
-@wp.kernel
-def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-        code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), tx: wp.array(dtype=wp.vec3),
-        tv: wp.array(dtype=wp.vec3),
-        t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
-        env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
-        step_base: wp.array(dtype=wp.int32),
-        n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
-        inv_dx: float, has_ground: int, ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
-    """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+@wp.func
+def row_gradient_term(sum_w_v: wp.vec3, sum_dw_v: wp.vec3, w: wp.mat33, dw: wp.mat33, i: int, j: int):
+    """Stencil row (i, j)'s share of the grid velocity's gradient at a particle, Σ_k v ⊗ ∇w (per cell: × 1/Δx for
+    1/s), from the row's Σ_k w_k v and Σ_k dw_k v; ``w`` the B-spline weights, ``dw`` their slopes
+    (:func:`bspline_slopes`)."""
+    return (wp.outer(sum_w_v, wp.vec3(dw[i, 0] * w[j, 1], w[i, 0] * dw[j, 1], 0.0))
+            + wp.outer(sum_dw_v, wp.vec3(0.0, 0.0, w[i, 0] * w[j, 1])))
 
-    Only a rigid floor puts particles back on the plane (:func:`particle_advect`).  Tracked points are never put
-    back here, on any floor: they move with the material's velocity, and the host puts their *recorded* positions
-    back on the plane (:func:`.contact.clamp_to_ground`).  Putting them back here detached them from the material:
-    on the rigid floor a particle's lower face sinks about a millimetre into the floor's spring
-    (:data:`.contact.RIGID_CONTACT_BETA`), the lower-face tracked points were held up on the plane by that much
-    and kept the offset after the bounce, so they left the floor that much early (the drop's contact duration
-    was 25 ms where the solid touched for 33; docs/mpm.md, "Contact duration").
 
-    Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
-    velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
-    (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
-    """
-    tid = wp.tid()
-    particle = tid < n_particles
-    env = int(0)
-    held = bool(False)
-    xp = wp.vec3()
-    if particle:
-        env = tid / n_per_env
-        if substep + step_base[0] >= env_steps[env]:
-            return
-        c = code[tid]
-        if c >= HELD_FLAG:
-            held = True
-            if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
-                v[tid] = wp.vec3(0.0)
-                C[tid] = wp.mat33(0.0)
+def _make_g2p(grid: bool):
+    """The G2P kernel; ``grid=True`` also updates H from the grid velocity's gradient (setting
+    ``deformation_gradient = "grid"``), compiled apart so that the default pays nothing for it."""
+
+    def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+            H: wp.array(dtype=wp.mat33), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+            tx: wp.array(dtype=wp.vec3),
+            tv: wp.array(dtype=wp.vec3),
+            t_held: wp.array(dtype=wp.int32), grid_v: wp.array(dtype=wp.vec4),
+            env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32), env_origin: wp.array(dtype=wp.vec3),
+            step_base: wp.array(dtype=wp.int32),
+            n_per_env: int, n_particles: int, m_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float,
+            inv_dx: float, has_ground: int, ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
+        """Gather velocity and affine velocity to particles and advect them; advect the tracked points.
+
+        Only a rigid floor puts particles back on the plane (:func:`particle_advect`).  Tracked points are never put
+        back here, on any floor: they move with the material's velocity, and the host puts their *recorded* positions
+        back on the plane (:func:`.contact.clamp_to_ground`).  Putting them back here detached them from the material:
+        on the rigid floor a particle's lower face sinks about a millimetre into the floor's spring
+        (:data:`.contact.RIGID_CONTACT_BETA`), the lower-face tracked points were held up on the plane by that much
+        and kept the offset after the bounce, so they left the floor that much early (the drop's contact duration
+        was 25 ms where the solid touched for 33; docs/mpm.md, "Contact duration").
+
+        Threads ``[0, n_particles)`` are particles, the rest tracked points.  A tracked point's
+        velocity is a mass-weighted affine least-squares fit of the node velocities of its stencil
+        (exact for rigid motion and uniform strain, also at the surface where outer nodes are empty).
+        """
+        tid = wp.tid()
+        particle = tid < n_particles
+        env = int(0)
+        held = bool(False)
+        xp = wp.vec3()
+        if particle:
+            env = tid / n_per_env
+            if substep + step_base[0] >= env_steps[env]:
                 return
-        xp = x[tid]
-    else:
-        t = tid - n_particles
-        env = t / m_per_env
-        if substep + step_base[0] >= env_steps[env] or t_held[t] != 0:
+            c = code[tid]
+            if c >= HELD_FLAG:
+                held = True
+                if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
+                    v[tid] = wp.vec3(0.0)
+                    C[tid] = wp.mat33(0.0)
+                    return
+            xp = x[tid]
+        else:
+            t = tid - n_particles
+            env = t / m_per_env
+            if substep + step_base[0] >= env_steps[env] or t_held[t] != 0:
+                return
+            xp = tx[t]
+        if not wp.isfinite(xp):
             return
-        xp = tx[t]
-    if not wp.isfinite(xp):
-        return
-    origin = env_origin[env]
-    base = stencil_base(xp, origin, inv_dx)
-    if not stencil_inside(base, dims):
-        return
-    dt = env_dt[env]
-    fx = (xp - origin) * inv_dx - base
-    w = bspline_weights(fx)
-    ib = int(base[0])
-    jb = int(base[1])
-    kb = int(base[2])
-    block = env * nodes_per_env
-    # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
-    vel = wp.vec3(0.0)
-    bi = wp.vec3(0.0)
-    bj = wp.vec3(0.0)
-    bk = wp.vec3(0.0)
-    if particle:
+        origin = env_origin[env]
+        base = stencil_base(xp, origin, inv_dx)
+        if not stencil_inside(base, dims):
+            return
+        dt = env_dt[env]
+        fx = (xp - origin) * inv_dx - base
+        w = bspline_weights(fx)
+        ib = int(base[0])
+        jb = int(base[1])
+        kb = int(base[2])
+        block = env * nodes_per_env
+        # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
+        vel = wp.vec3(0.0)
+        bi = wp.vec3(0.0)
+        bj = wp.vec3(0.0)
+        bk = wp.vec3(0.0)
+        if particle:
+            if wp.static(grid):
+                dw = bspline_slopes(fx)
+                grad = wp.mat33(0.0)  # Σ v_i ∇w_ip (per cell), F's velocity gradient
+            for i in range(3):
+                for j in range(3):
+                    wij = w[i, 0] * w[j, 1]
+                    row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                    if wp.static(grid):
+                        sum_w_v = wp.vec3(0.0)
+                        sum_dw_v = wp.vec3(0.0)
+                    for k in range(3):
+                        gv = grid_v[row + k]
+                        vi = wp.vec3(gv[0], gv[1], gv[2])
+                        wv = (wij * w[k, 2]) * vi
+                        vel = vel + wv
+                        bi = plus_offset_times(bi, i, wv)
+                        bj = plus_offset_times(bj, j, wv)
+                        bk = plus_offset_times(bk, k, wv)
+                        if wp.static(grid):
+                            sum_w_v = sum_w_v + w[k, 2] * vi
+                            sum_dw_v = sum_dw_v + dw[k, 2] * vi
+                    if wp.static(grid):
+                        grad = grad + row_gradient_term(sum_w_v, sum_dw_v, w, dw, i, j)
+            if wp.static(grid):  # F ← (I + Δt ∇v) F here, at the end of the substep; P2G then only applies the law
+                H[tid] = displacement_gradient_update(H[tid], (dt * inv_dx) * grad)
+            particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx,
+                            rigid_floor(has_ground, env_ground[env]), ground_z, x, v, C)
+            return
+        # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities, in stencil
+        # coordinates e = (i, j, k) - 1 (cells; the point is at fx - 1).  The weighted moments are summed a stencil
+        # row (i, j) at a time: with e in {-1, 0, 1} a row needs three mass sums and two momentum sums, and the
+        # second moments follow from them (the fit is translation-invariant, so this is the centred fit of
+        # velocities against node offsets, written with far fewer products)
+        W = float(0.0)
+        s1 = wp.vec3(0.0)  # sum wm e
+        sxx = float(0.0)  # sum wm e e^T, its six entries
+        syy = float(0.0)
+        szz = float(0.0)
+        sxy = float(0.0)
+        sxz = float(0.0)
+        syz = float(0.0)
+        sv = wp.vec3(0.0)  # sum wm v
+        svx = wp.vec3(0.0)  # sum wm v e^T, its columns
+        svy = wp.vec3(0.0)
+        svz = wp.vec3(0.0)
+        vlo = wp.vec3(3.0e38)
+        vhi = wp.vec3(-3.0e38)
         for i in range(3):
+            ei = float(i) - 1.0
             for j in range(3):
+                ej = float(j) - 1.0
                 wij = w[i, 0] * w[j, 1]
                 row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                a0 = float(0.0)  # the row's sum wm, sum wm e_z, sum wm e_z^2
+                a1 = float(0.0)
+                a2 = float(0.0)
+                r0 = wp.vec3(0.0)  # the row's sum wm v, sum wm v e_z
+                r1 = wp.vec3(0.0)
                 for k in range(3):
+                    ek = float(k) - 1.0
                     gv = grid_v[row + k]
-                    wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
-                    vel = vel + wv
-                    bi = plus_offset_times(bi, i, wv)
-                    bj = plus_offset_times(bj, j, wv)
-                    bk = plus_offset_times(bk, k, wv)
-        particle_advect(tid, held, xp, fx, vel, bi, bj, bk, dt, dx, inv_dx, rigid_floor(has_ground, env_ground[env]),
-                        ground_z, x, v, C)
-        return
-    # tracked point: mass-weighted affine least-squares fit of the stencil's node velocities, in stencil
-    # coordinates e = (i, j, k) - 1 (cells; the point is at fx - 1).  The weighted moments are summed a stencil
-    # row (i, j) at a time: with e in {-1, 0, 1} a row needs three mass sums and two momentum sums, and the
-    # second moments follow from them (the fit is translation-invariant, so this is the centred fit of
-    # velocities against node offsets, written with far fewer products)
-    W = float(0.0)
-    s1 = wp.vec3(0.0)  # sum wm e
-    sxx = float(0.0)  # sum wm e e^T, its six entries
-    syy = float(0.0)
-    szz = float(0.0)
-    sxy = float(0.0)
-    sxz = float(0.0)
-    syz = float(0.0)
-    sv = wp.vec3(0.0)  # sum wm v
-    svx = wp.vec3(0.0)  # sum wm v e^T, its columns
-    svy = wp.vec3(0.0)
-    svz = wp.vec3(0.0)
-    vlo = wp.vec3(3.0e38)
-    vhi = wp.vec3(-3.0e38)
-    for i in range(3):
-        ei = float(i) - 1.0
-        for j in range(3):
-            ej = float(j) - 1.0
-            wij = w[i, 0] * w[j, 1]
-            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-            a0 = float(0.0)  # the row's sum wm, sum wm e_z, sum wm e_z^2
-            a1 = float(0.0)
-            a2 = float(0.0)
-            r0 = wp.vec3(0.0)  # the row's sum wm v, sum wm v e_z
-            r1 = wp.vec3(0.0)
-            for k in range(3):
-                ek = float(k) - 1.0
-                gv = grid_v[row + k]
-                vi = wp.vec3(gv[0], gv[1], gv[2])
-                wm = (wij * w[k, 2]) * gv[3]  # 0 at an empty node (its velocity is 0 too)
-                wv = wm * vi
-                a0 = a0 + wm
-                a1 = a1 + ek * wm
-                a2 = a2 + (ek * ek) * wm
-                r0 = r0 + wv
-                r1 = r1 + ek * wv
-                if wm > 0.0:
-                    vlo = wp.min(vlo, vi)
-                    vhi = wp.max(vhi, vi)
-            W = W + a0
-            s1 = s1 + wp.vec3(ei * a0, ej * a0, a1)
-            sxx = sxx + (ei * ei) * a0
-            syy = syy + (ej * ej) * a0
-            szz = szz + a2
-            sxy = sxy + (ei * ej) * a0
-            sxz = sxz + ei * a1
-            syz = syz + ej * a1
-            sv = sv + r0
-            svx = svx + ei * r0
-            svy = svy + ej * r0
-            svz = svz + r1
-    t = tid - n_particles
-    vt = tv[t]
-    if W > 0.0:
-        ebar = s1 / W
-        vbar = sv / W
-        cov = wp.mat33(sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz) - W * wp.outer(ebar, ebar) + wp.identity(
-            n=3, dtype=float) * (TRACKED_FIT_REGULARISATION * W)
-        grad = (wp.matrix_from_cols(svx, svy, svz) - W * wp.outer(vbar, ebar)) @ wp.inverse(cov)  # m/s per cell
-        fit = vbar + grad @ (fx - wp.vec3(1.0) - ebar)  # the fitted field at the tracked point
-        # guard against ill-conditioned fits (few massive nodes, e.g. in a thin film): stay within the node
-        # velocities' range widened by that range on each side (a single node gives its own velocity)
-        spread = vhi - vlo
-        fit = wp.min(wp.max(fit, vlo - spread), vhi + spread)
-        vt = vbar
-        if wp.isfinite(fit):
-            vt = fit
-    tx[t] = xp + dt * vt  # never put back on the plane here: a tracked point moves with the material
-    tv[t] = vt
+                    vi = wp.vec3(gv[0], gv[1], gv[2])
+                    wm = (wij * w[k, 2]) * gv[3]  # 0 at an empty node (its velocity is 0 too)
+                    wv = wm * vi
+                    a0 = a0 + wm
+                    a1 = a1 + ek * wm
+                    a2 = a2 + (ek * ek) * wm
+                    r0 = r0 + wv
+                    r1 = r1 + ek * wv
+                    if wm > 0.0:
+                        vlo = wp.min(vlo, vi)
+                        vhi = wp.max(vhi, vi)
+                W = W + a0
+                s1 = s1 + wp.vec3(ei * a0, ej * a0, a1)
+                sxx = sxx + (ei * ei) * a0
+                syy = syy + (ej * ej) * a0
+                szz = szz + a2
+                sxy = sxy + (ei * ej) * a0
+                sxz = sxz + ei * a1
+                syz = syz + ej * a1
+                sv = sv + r0
+                svx = svx + ei * r0
+                svy = svy + ej * r0
+                svz = svz + r1
+        t = tid - n_particles
+        vt = tv[t]
+        if W > 0.0:
+            ebar = s1 / W
+            vbar = sv / W
+            cov = wp.mat33(sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz) - W * wp.outer(ebar, ebar) + wp.identity(
+                n=3, dtype=float) * (TRACKED_FIT_REGULARISATION * W)
+            grad = (wp.matrix_from_cols(svx, svy, svz) - W * wp.outer(vbar, ebar)) @ wp.inverse(cov)  # m/s per cell
+            fit = vbar + grad @ (fx - wp.vec3(1.0) - ebar)  # the fitted field at the tracked point
+            # guard against ill-conditioned fits (few massive nodes, e.g. in a thin film): stay within the node
+            # velocities' range widened by that range on each side (a single node gives its own velocity)
+            spread = vhi - vlo
+            fit = wp.min(wp.max(fit, vlo - spread), vhi + spread)
+            vt = vbar
+            if wp.isfinite(fit):
+                vt = fit
+        tx[t] = xp + dt * vt  # never put back on the plane here: a tracked point moves with the material
+        tv[t] = vt
+
+    g2p.__name__ = g2p.__qualname__ = "g2p_grid" if grid else "g2p"
+    return wp.kernel(g2p)
+
+
+g2p = _make_g2p(False)
+g2p_grid = _make_g2p(True)
+"""``g2p`` with ``deformation_gradient = "grid"``: also updates each particle's H from the gradient of the grid's
+velocity."""
 
 
 @wp.kernel

@@ -35,8 +35,9 @@ import warp as wp
 
 from .constitutive import ClassLaw
 from .contact_kernels import rigid_floor
-from .mpm_kernels import (HELD_FLAG, bspline_weights, particle_advect, particle_stress_elastic, particle_stress_general,
-                          particle_transfer, stencil_base, stencil_inside)
+from .mpm_kernels import (HELD_FLAG, bspline_slopes, bspline_weights, displacement_gradient_update, particle_advect,
+                          particle_stress_elastic, particle_stress_general, particle_transfer, row_gradient_term,
+                          stencil_base, stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -214,8 +215,8 @@ def _make_p2g(general: bool, scatter: str):
             env_ground: wp.array(dtype=wp.vec3), has_ground: int, ground_z: float, contact_radius: float,
             contact_area: float,
             n_particles: int, n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float,
-            rigid_static: int, substep: int, grid_mv: wp.array(dtype=wp.vec4), grid_held: wp.array(dtype=float),
-            grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
+            rigid_static: int, update_f: int, substep: int, grid_mv: wp.array(dtype=wp.vec4),
+            grid_held: wp.array(dtype=float), grid_contact: wp.array(dtype=float), lost: wp.array(dtype=wp.int32)):
         p = wp.tid()
         env = int(0)
         active = bool(False)
@@ -257,9 +258,11 @@ def _make_p2g(general: bool, scatter: str):
         tau = wp.mat33(0.0)
         if law.held == 0:
             if wp.static(general):
-                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_general(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta,
+                                              update_f)
             else:
-                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta)
+                tau = particle_stress_elastic(p, env, dt, law, Cp, H, rot, plastic, mu_p, lam_p, env_yield, env_eta,
+                                              update_f)
 
         w, cols, a0, jn = particle_transfer(p, env, dt, tau, Cp, m, vol, v, mu_p, lam_p, env_eta, xp, origin, base,
                                             held, has_ground, ground_z, contact_radius, contact_area, env_ground, dx,
@@ -296,52 +299,79 @@ P2G_KERNELS = {(scatter, general): _make_p2g(general, scatter)
 
 
 # ------------------------------------------------------------------------------ G2P, split
-@wp.kernel
-def g2p_particles(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
-                  code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw), grid_v: wp.array(dtype=wp.vec4),
-                  env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
-                  env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
-                  n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int,
-                  ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
-    """The particle half of :data:`.mpm_kernels.g2p` (same results): gather v and C, advect."""
-    tid = wp.tid()
-    env = tid / n_per_env
-    if substep + step_base[0] >= env_steps[env]:
-        return
-    c = code[tid]
-    held = c >= HELD_FLAG
-    if held:
-        if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
-            v[tid] = wp.vec3(0.0)
-            C[tid] = wp.mat33(0.0)
+def _make_g2p_particles(grid: bool):
+    """The split particle G2P; ``grid`` as in :func:`.mpm_kernels._make_g2p`."""
+
+    def g2p_particles(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
+                      H: wp.array(dtype=wp.mat33), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),
+                      grid_v: wp.array(dtype=wp.vec4),
+                      env_dt: wp.array(dtype=float), env_steps: wp.array(dtype=wp.int32),
+                      env_origin: wp.array(dtype=wp.vec3), step_base: wp.array(dtype=wp.int32),
+                      n_per_env: int, nodes_per_env: int, dims: wp.vec3i, dx: float, inv_dx: float, has_ground: int,
+                      ground_z: float, env_ground: wp.array(dtype=wp.vec3), substep: int):
+        """The particle half of :data:`.mpm_kernels.g2p` (same results): gather v and C (and, compiled with ``grid``,
+        update H from the grid's velocity gradient), advect."""
+        tid = wp.tid()
+        env = tid / n_per_env
+        if substep + step_base[0] >= env_steps[env]:
             return
-    xp = x[tid]
-    if not wp.isfinite(xp):
-        return
-    origin = env_origin[env]
-    base = stencil_base(xp, origin, inv_dx)
-    if not stencil_inside(base, dims):
-        return
-    fx = (xp - origin) * inv_dx - base
-    w = bspline_weights(fx)
-    ib = int(base[0])
-    jb = int(base[1])
-    kb = int(base[2])
-    block = env * nodes_per_env
-    vel = wp.vec3(0.0)
-    bi = wp.vec3(0.0)
-    bj = wp.vec3(0.0)
-    bk = wp.vec3(0.0)
-    for i in range(3):
-        for j in range(3):
-            wij = w[i, 0] * w[j, 1]
-            row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-            for k in range(3):
-                gv = load_node(grid_v, row + k)
-                wv = (wij * w[k, 2]) * wp.vec3(gv[0], gv[1], gv[2])
-                vel = vel + wv
-                bi = bi + float(i) * wv
-                bj = bj + float(j) * wv
-                bk = bk + float(k) * wv
-    particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx,
-                    rigid_floor(has_ground, env_ground[env]), ground_z, x, v, C)
+        c = code[tid]
+        held = c >= HELD_FLAG
+        if held:
+            if laws[c % HELD_FLAG].held != 0:  # rigid (stationary): no deformation at all
+                v[tid] = wp.vec3(0.0)
+                C[tid] = wp.mat33(0.0)
+                return
+        xp = x[tid]
+        if not wp.isfinite(xp):
+            return
+        origin = env_origin[env]
+        base = stencil_base(xp, origin, inv_dx)
+        if not stencil_inside(base, dims):
+            return
+        fx = (xp - origin) * inv_dx - base
+        w = bspline_weights(fx)
+        ib = int(base[0])
+        jb = int(base[1])
+        kb = int(base[2])
+        block = env * nodes_per_env
+        vel = wp.vec3(0.0)
+        bi = wp.vec3(0.0)
+        bj = wp.vec3(0.0)
+        bk = wp.vec3(0.0)
+        if wp.static(grid):
+            dw = bspline_slopes(fx)
+            grad = wp.mat33(0.0)
+        for i in range(3):
+            for j in range(3):
+                wij = w[i, 0] * w[j, 1]
+                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
+                if wp.static(grid):
+                    sum_w_v = wp.vec3(0.0)
+                    sum_dw_v = wp.vec3(0.0)
+                for k in range(3):
+                    gv = load_node(grid_v, row + k)
+                    vi = wp.vec3(gv[0], gv[1], gv[2])
+                    wv = (wij * w[k, 2]) * vi
+                    vel = vel + wv
+                    bi = bi + float(i) * wv
+                    bj = bj + float(j) * wv
+                    bk = bk + float(k) * wv
+                    if wp.static(grid):
+                        sum_w_v = sum_w_v + w[k, 2] * vi
+                        sum_dw_v = sum_dw_v + dw[k, 2] * vi
+                if wp.static(grid):
+                    grad = grad + row_gradient_term(sum_w_v, sum_dw_v, w, dw, i, j)
+        if wp.static(grid):
+            H[tid] = displacement_gradient_update(H[tid], (env_dt[env] * inv_dx) * grad)
+        particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx,
+                        rigid_floor(has_ground, env_ground[env]), ground_z, x, v, C)
+
+    g2p_particles.__name__ = g2p_particles.__qualname__ = "g2p_particles_grid" if grid else "g2p_particles"
+    return wp.kernel(g2p_particles)
+
+
+g2p_particles = _make_g2p_particles(False)
+g2p_particles_grid = _make_g2p_particles(True)
+"""``g2p_particles`` with ``deformation_gradient = "grid"``: also updates each particle's H from the gradient of the
+grid's velocity."""

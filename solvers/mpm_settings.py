@@ -16,6 +16,8 @@ from .settings import SolverSettings, setting
 
 MATERIAL_SAMPLINGS = ("nearest", "trilinear")
 """How voxel material fields are looked up at the particles (setting ``material_sampling``)."""
+DEFORMATION_GRADIENTS = ("affine", "grid")
+"""Which velocity gradient updates each particle's deformation gradient (setting ``deformation_gradient``)."""
 P2G_SCATTER_MODES = ("atomic", "vector", "warp")
 """How P2G adds to the grid (setting ``p2g_scatter``; kernels in ``mpm_kernels`` / ``mpm_kernels_cuda``)."""
 
@@ -63,6 +65,13 @@ class MPMSettings(SolverSettings):
         (the body is given in its deformed shape, e.g. a pre-stretched bar); ``None`` = identity.
     sort_particles: reorder particles by grid cell before every chunk of substeps (memory locality;
         on a GPU it also lets a warp's particles share stencils, which the ``"warp"`` scatter exploits).
+    deformation_gradient: the velocity gradient that updates each particle's deformation gradient,
+        F ← (I + Δt ∇v) F: ``"affine"`` (the default) takes APIC's affine matrix C = 4/Δx² Σ w v (x_i − x_p)ᵀ,
+        as MLS-MPM does; ``"grid"`` takes the gradient of the grid's interpolated velocity at the particle,
+        Σ v_i ∇w_ipᵀ (the momentum transfer keeps C either way).  On a bar that swings across cells ``"grid"``
+        sinks about a quarter as fast (docs/fidelity.md, "MPM's creep"); not yet the default because the
+        fidelity study's GPU ladder was measured with ``"affine"``.  Material damping's strain rate is C's
+        either way.
 
     GPU tuning (the results do not depend on them beyond float reassociation; ``None``/``"auto"``
     picks the device's default, the CPU's being the plain kernels):
@@ -102,6 +111,7 @@ class MPMSettings(SolverSettings):
     material_sampling: str = setting("nearest", "choice", choices=MATERIAL_SAMPLINGS)
     initial_deformation: Optional[np.ndarray] = None
     sort_particles: bool = setting(True, "flag")
+    deformation_gradient: str = setting("affine", "choice", choices=DEFORMATION_GRADIENTS)
     p2g_scatter: str = setting("auto", "choice", choices=("auto",) + P2G_SCATTER_MODES)
     split_g2p: Optional[bool] = setting(None, "flag", optional=True)
     graph_substeps: Optional[int] = setting(None, "count0", optional=True)
