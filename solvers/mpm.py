@@ -620,7 +620,8 @@ class MPMSimulation(Simulation):
                   tuning: _Tuning) -> _StepCommands:
         """The substep launches for the current particle buffer, grid and kernels (built once, then reused)."""
         moving = self._moving_count(E, N, tuning)
-        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once, moving)
+        key = (buf.parity, self._p2g_kernel, tuning.split_g2p, tuning.block_dim, tuning.rigid_once, moving,
+               self.settings.deformation_gradient)
         cmds = buf.commands.get(key)
         if cmds is not None:
             return cmds
