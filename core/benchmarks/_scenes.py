@@ -193,14 +193,18 @@ def _cantilever(direction: str) -> Scene:
     f1 = 1.875104 ** 2 / (2 * math.pi * free ** 2) * math.sqrt(EI / (BAR_DENSITY * area))
     frames = np.linspace(0.0, 2.2 / f1, 221)
 
+    def tip_deflection(traj):
+        """(T,) m: the tip's displacement along the bending axis (negative: down the load)."""
+        return traj.positions[:, 0, axis].astype(np.float64) - tip[0, axis]
+
     def measure(traj):
-        d = traj.positions[:, 0, axis].astype(np.float64) - tip[0, axis]
+        d = tip_deflection(traj)
         a, f, rms = fit_oscillation(traj.times, d, f1)
         return {"oscillation_mean": -a, "frequency": f, "fit_residual": rms,
                 "mean_drift_per_period": -mean_drift_per_period(traj.times, d, f)}
 
     def measure_settled(traj):
-        d = traj.positions[:, 0, axis].astype(np.float64) - tip[0, axis]
+        d = tip_deflection(traj)
         last = np.asarray(traj.times, float) > SETTLE_TIME - SETTLE_WINDOW
         return {"tip_sag": float(-d[last].mean()), "settle_residual": float(d[last].std())}
 
