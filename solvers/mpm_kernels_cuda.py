@@ -35,9 +35,9 @@ import warp as wp
 
 from .constitutive import ClassLaw
 from .contact_kernels import rigid_floor
-from .mpm_kernels import (HELD_FLAG, bspline_slopes, bspline_weights, displacement_gradient_update, particle_advect,
-                          particle_stress_elastic, particle_stress_general, particle_transfer, row_gradient_term,
-                          stencil_base, stencil_inside)
+from .mpm_kernels import (HELD_FLAG, bspline_slopes, bspline_weights, displacement_gradient_update,
+                          gather_stencil, gather_stencil_with_gradient, particle_advect, particle_stress_elastic,
+                          particle_stress_general, particle_transfer, stencil_base, stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -181,22 +181,6 @@ def scatter_warp(grid: wp.array(dtype=wp.vec4), index: int, value: wp.vec4, plan
     ...
 
 
-LOAD_NODE_SNIPPET = r"""
-#if defined(__CUDA_ARCH__)
-    const float4 r = __ldg(reinterpret_cast<const float4*>(wp::address(grid, index)));
-    return wp::vec_t<4, wp::float32>(r.x, r.y, r.z, r.w);
-#else
-    return wp::index(grid, index);
-#endif
-"""
-
-
-@wp.func_native(LOAD_NODE_SNIPPET)
-def load_node(grid: wp.array(dtype=wp.vec4), index: int) -> wp.vec4:
-    """``grid[index]`` as one 16-byte read-only load on a GPU (the array must not change during the kernel)."""
-    ...
-
-
 # ------------------------------------------------------------------------------ P2G
 def _make_p2g(general: bool, scatter: str):
     """P2G with the ``"vector"`` or ``"warp"`` scatter; ``general`` as in :func:`.mpm_kernels._make_p2g`.
@@ -335,35 +319,12 @@ def _make_g2p_particles(grid: bool):
         jb = int(base[1])
         kb = int(base[2])
         block = env * nodes_per_env
-        vel = wp.vec3(0.0)
-        bi = wp.vec3(0.0)
-        bj = wp.vec3(0.0)
-        bk = wp.vec3(0.0)
         if wp.static(grid):
-            dw = bspline_slopes(fx)
-            grad = wp.mat33(0.0)
-        for i in range(3):
-            for j in range(3):
-                wij = w[i, 0] * w[j, 1]
-                row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
-                if wp.static(grid):
-                    sum_w_v = wp.vec3(0.0)
-                    sum_dw_v = wp.vec3(0.0)
-                for k in range(3):
-                    gv = load_node(grid_v, row + k)
-                    vi = wp.vec3(gv[0], gv[1], gv[2])
-                    wv = (wij * w[k, 2]) * vi
-                    vel = vel + wv
-                    bi = bi + float(i) * wv
-                    bj = bj + float(j) * wv
-                    bk = bk + float(k) * wv
-                    if wp.static(grid):
-                        sum_w_v = sum_w_v + w[k, 2] * vi
-                        sum_dw_v = sum_dw_v + dw[k, 2] * vi
-                if wp.static(grid):
-                    grad = grad + row_gradient_term(sum_w_v, sum_dw_v, w, dw, i, j)
-        if wp.static(grid):
+            vel, bi, bj, bk, grad = gather_stencil_with_gradient(grid_v, block, ib, jb, kb, dims, w,
+                                                                 bspline_slopes(fx))
             H[tid] = displacement_gradient_update(H[tid], (env_dt[env] * inv_dx) * grad)
+        else:
+            vel, bi, bj, bk = gather_stencil(grid_v, block, ib, jb, kb, dims, w)
         particle_advect(tid, held, xp, fx, vel, bi, bj, bk, env_dt[env], dx, inv_dx,
                         rigid_floor(has_ground, env_ground[env]), ground_z, x, v, C)
 

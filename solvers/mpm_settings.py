@@ -25,7 +25,7 @@ DEFAULT_CELLS_ACROSS = 32
 """Grid cells across a mesh body's largest extent by default."""
 DEFAULT_CELLS_ACROSS_THINNEST = 4
 """Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: a clamped bar four cells thick
-sags 1.4–5.8 % more than Euler–Bernoulli and vibrates within 0.8 % of its frequency)."""
+settles 1.6–2.0 % below Euler–Bernoulli's static sag and vibrates within 0.8 % of its frequency)."""
 AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
 """Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
 
@@ -66,12 +66,11 @@ class MPMSettings(SolverSettings):
     sort_particles: reorder particles by grid cell before every chunk of substeps (memory locality;
         on a GPU it also lets a warp's particles share stencils, which the ``"warp"`` scatter exploits).
     deformation_gradient: the velocity gradient that updates each particle's deformation gradient,
-        F ← (I + Δt ∇v) F: ``"affine"`` (the default) takes APIC's affine matrix C = 4/Δx² Σ w v (x_i − x_p)ᵀ,
-        as MLS-MPM does; ``"grid"`` takes the gradient of the grid's interpolated velocity at the particle,
-        Σ v_i ∇w_ipᵀ (the momentum transfer keeps C either way).  On a bar that swings across cells ``"grid"``
-        sinks about a quarter as fast (docs/fidelity.md, "MPM's creep"); not yet the default because the
-        fidelity study's GPU ladder was measured with ``"affine"``.  Material damping's strain rate is C's
-        either way.
+        F ← (I + Δt ∇v) F: ``"grid"`` (the default since 2026-11-28) takes the gradient of the grid's interpolated
+        velocity at the particle, Σ v_i ∇w_ipᵀ; ``"affine"`` takes APIC's affine matrix C = 4/Δx² Σ w v (x_i − x_p)ᵀ,
+        as MLS-MPM does (the momentum transfer keeps C either way).  With ``"affine"`` a bar that swings across
+        cells sinks a little every period (0.22 mm a period, 2.4 % of its sag, at the bake default; ``"grid"``
+        0.03 mm; docs/fidelity.md, "MPM's creep").  Material damping's strain rate is C's either way.
 
     GPU tuning (the results do not depend on them beyond float reassociation; ``None``/``"auto"``
     picks the device's default, the CPU's being the plain kernels):
@@ -111,7 +110,7 @@ class MPMSettings(SolverSettings):
     material_sampling: str = setting("nearest", "choice", choices=MATERIAL_SAMPLINGS)
     initial_deformation: Optional[np.ndarray] = None
     sort_particles: bool = setting(True, "flag")
-    deformation_gradient: str = setting("affine", "choice", choices=DEFORMATION_GRADIENTS)
+    deformation_gradient: str = setting("grid", "choice", choices=DEFORMATION_GRADIENTS)
     p2g_scatter: str = setting("auto", "choice", choices=("auto",) + P2G_SCATTER_MODES)
     split_g2p: Optional[bool] = setting(None, "flag", optional=True)
     graph_substeps: Optional[int] = setting(None, "count0", optional=True)

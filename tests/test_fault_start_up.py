@@ -23,10 +23,18 @@ from unipixie.core import start_up
 from unipixie.core.errors import EXIT_CANCELLED
 
 SITECUSTOMIZE = textwrap.dedent("""
-    import os, signal, sys
+    import os, signal, sys, time
 
     os.write(1, b"python started\\n")              # the end of the interpreter's own start-up (site)
     _at = os.environ.get("UNIPIXIE_TEST_SIGINT_AT")
+    _slow = os.environ.get("UNIPIXIE_TEST_SLOW_OPEN")
+
+    def _slow_disk(event, args):
+        if event == "open" and isinstance(args[0], (str, os.PathLike)) and os.fspath(args[0]) == _slow:
+            time.sleep(60)                          # the input file sits on a slow disk
+
+    if _slow:
+        sys.addaudithook(_slow_disk)
 
     def _hook(event, args, _sent=[]):
         if event == "import" and args[0] == _at and not _sent:
@@ -53,6 +61,10 @@ def command(tmp_path_factory):
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(d / "site")] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env.pop("UNIPIXIE_TRACEBACK", None)
+    # The command reads the grid about 1.7 s after start-up here, and then ends (the file is not an archive); on a
+    # fast machine the latest SIGINT below (1.5 s) came after that.  Opening the grid takes a minute instead, so
+    # every SIGINT falls before the command has ended — during start-up or during its own first work.
+    env["UNIPIXIE_TEST_SLOW_OPEN"] = str(d / "grid.npz")
     argv = [sys.executable, "-m", "unipixie.cli", "predict", str(d / "grid.npz"), "--alpha", "0.5", "--steps", "1",
             "--out", str(d / "pred")]
     return argv, env

@@ -268,9 +268,10 @@ def test_stiff_cantilever_does_not_creep():
 def test_swinging_cantilever_creep_is_bounded_and_the_grid_gradient_quarters_it():
     """MPM's creep (docs/fidelity.md, "MPM's creep"): a bar that swings across grid cells sinks a little every
     period, a discretisation artefact of updating F with APIC's affine matrix.  A soft bar (E = 2 MPa: 15 mm sag,
-    1.5 cells) released for four periods: with the default ``deformation_gradient = "affine"`` the mean it swings
-    about sinks at most 6 % of the static sag a period (measured 2026-11-28: 0.70 mm, 4.6 %); with ``"grid"``
-    (F from the gradient of the grid's velocity) at most 2 % and under half the affine rate (0.19 mm, 1.2 %).
+    1.5 cells) released for four periods: with ``deformation_gradient = "affine"`` (the default until 2026-11-28)
+    the mean it swings about sinks at most 6 % of the static sag a period (measured: 0.70 mm, 4.6 %); with the
+    default ``"grid"`` (F from the gradient of the grid's velocity) at most 2 % and under half the affine rate
+    (0.19 mm, 1.2 %).
     Frequencies within 10 % of Euler–Bernoulli either way."""
     from unipixie.core.benchmarks._scenes import fit_oscillation, mean_drift_per_period
 

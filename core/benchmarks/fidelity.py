@@ -12,7 +12,8 @@ solver pair: ``metric: trajectory_rmse_over_size``) and, with ``--plots DIR``, o
 (``fidelity_<scene>.png``: each metric against resolution, per solver, with the reference and its ±5 % band).
 
 The ladders are data (:data:`LADDERS`); ``--ladder fast`` keeps the runs a 2-core CPU affords in minutes,
-``full`` adds the fine levels meant for a GPU.
+``full`` adds the fine levels meant for a GPU; ``defaults`` runs only each solver's bake default (the cross-solver
+agreement in a few runs).
 """
 
 from __future__ import annotations
@@ -66,8 +67,9 @@ def add_arguments(p):
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default: cpu)")
     p.add_argument("--scenes", default=",".join(LADDERS), help=f"comma-separated scenes (default: all: {','.join(LADDERS)})")
     p.add_argument("--solvers", default=",".join(SOLVER_NAMES), help="comma-separated solvers (default: all)")
-    p.add_argument("--ladder", choices=("fast", "full"), default="fast",
-                   help="fast: the resolutions a 2-core CPU affords; full: also the fine levels (a GPU)")
+    p.add_argument("--ladder", choices=("fast", "full", "defaults"), default="fast",
+                   help="fast: the resolutions a 2-core CPU affords; full: also the fine levels (a GPU); defaults: "
+                        "only each solver's bake default (the cross-solver agreement without the study)")
     p.add_argument("--referee", metavar="JSON", help="reference values from the independent referee "
                                                      "(scene -> metric -> value), for the scenes without a closed form")
     p.add_argument("--plots", metavar="DIR", help="write fidelity_<scene>.png figures here")
@@ -142,7 +144,7 @@ def run(args) -> list[dict]:
         at_default: dict = {}
         for solver in solvers:
             for label, settings, default, level in LADDERS[name].get(solver, []):
-                if level == "full" and args.ladder != "full":
+                if (level == "full" and args.ladder == "fast") or (args.ladder == "defaults" and not default):
                     continue
                 print(f"[fidelity] {name} / {solver} / {label} ...", flush=True)
                 try:
@@ -205,7 +207,9 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
             ax.axhspan(ref * (1 - TOLERANCE), ref * (1 + TOLERANCE), color="0.85", label="reference ± 5 %")
             ax.axhline(ref, color="k", lw=1)
             for solver in SOLVER_NAMES:
-                pts = [r for r in sub if r["solver"] == solver]
+                ladder = [label for label, *_ in LADDERS.get(scene, {}).get(solver, [])]
+                pts = sorted((r for r in sub if r["solver"] == solver),  # the ladder's order, whatever the file's
+                             key=lambda r: ladder.index(r["resolution"]) if r["resolution"] in ladder else len(ladder))
                 for number, (varied, series) in enumerate(refinement_series(solver, pts)):
                     xs = np.arange(len(series))
                     ax.plot(xs, [r["value"] for r in series], "o-" if number == 0 else "s--", color=colours[solver],

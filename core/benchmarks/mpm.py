@@ -55,11 +55,13 @@ VARIANTS = {
     "warp-b128": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "block_dim": 128},
     "warp-b512": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "block_dim": 512},
     "warp-sort25": {"p2g_scatter": "warp", "split_g2p": True, "graph_substeps": 16, "sort_interval": 25},
+    "affine": {"deformation_gradient": "affine"},
+    "grid": {"deformation_gradient": "grid"},
 }
 """Solver-setting presets compared by ``--variants`` (each builds on the solver's defaults; ``default`` = as
 shipped: on CUDA the same as ``warp``).  ``baseline`` is the kernel layout measured before the GPU work
 (Warp vec4 atomics, one G2P kernel, a Python launch per kernel)."""
-TUNING_FIELDS = ("p2g_scatter", "split_g2p", "graph_substeps", "block_dim", "sort_interval")
+TUNING_FIELDS = ("p2g_scatter", "split_g2p", "graph_substeps", "block_dim", "sort_interval", "deformation_gradient")
 
 
 def add_arguments(p):
