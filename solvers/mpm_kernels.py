@@ -495,13 +495,8 @@ def gather_stencil_with_gradient(grid_v: wp.array(dtype=wp.vec4), block: int, ib
     (:func:`particle_advect`), the grid velocity's gradient Σ v ⊗ ∇w per cell (× 1/Δx for 1/s)) over the 3×3×3
     stencil whose lower corner is node (``ib, jb, kb``) of the environment's block starting at ``block``, a stencil row
     at a time (:func:`add_stencil_row_with_gradient`; nodes read with :func:`load_node`)."""
-    vel = wp.vec3(0.0)
-    bi = wp.vec3(0.0)
-    bj = wp.vec3(0.0)
-    bk = wp.vec3(0.0)
-    gx = wp.vec3(0.0)
-    gy = wp.vec3(0.0)
-    gz = wp.vec3(0.0)
+    zero = wp.vec3(0.0)
+    vel, bi, bj, bk, gx, gy, gz = zero, zero, zero, zero, zero, zero, zero
     for i in range(3):
         for j in range(3):
             row = block + ((ib + i) * dims[1] + (jb + j)) * dims[2] + kb
