@@ -35,9 +35,10 @@ import warp as wp
 
 from .constitutive import ClassLaw
 from .contact_kernels import rigid_floor
-from .mpm_kernels import (HELD_FLAG, bspline_slopes, bspline_weights, displacement_gradient_update,
-                          gather_stencil, gather_stencil_with_gradient, particle_advect, particle_stress_elastic,
-                          particle_stress_general, particle_transfer, stencil_base, stencil_inside)
+from .mpm_kernels import (HELD_FLAG, displacement_gradient_update, particle_advect, particle_stress_elastic,
+                          particle_stress_general, particle_transfer)
+from .mpm_stencil import (bspline_slopes, bspline_weights, gather_stencil, gather_stencil_with_gradient, stencil_base,
+                          stencil_inside)
 
 wp.set_module_options({"enable_backward": False})
 
