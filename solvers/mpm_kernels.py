@@ -386,7 +386,7 @@ def particle_advect(tid: int, held: bool, xp: wp.vec3, fx: wp.vec3, vel: wp.vec3
 
 def _make_g2p(grid: bool):
     """The G2P kernel; ``grid=True`` also updates H from the grid velocity's gradient (setting
-    ``deformation_gradient = "grid"``), compiled apart so that the default pays nothing for it."""
+    ``deformation_gradient = "grid"``, the default), compiled apart so that neither variant pays for the other."""
 
     def g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
             H: wp.array(dtype=wp.mat33), code: wp.array(dtype=wp.int32), laws: wp.array(dtype=ClassLaw),

@@ -25,7 +25,7 @@ DEFAULT_CELLS_ACROSS = 32
 """Grid cells across a mesh body's largest extent by default."""
 DEFAULT_CELLS_ACROSS_THINNEST = 4
 """Grid cells across a mesh body's thinnest parts by default (docs/fidelity.md: a clamped bar four cells thick
-settles 1.6–2.0 % below Euler–Bernoulli's static sag and vibrates within 0.8 % of its frequency)."""
+sags 1.6–2.0 % more than Euler–Bernoulli at rest and vibrates within 1 % of its frequency)."""
 AUTO_MAX_PARTICLES = {"cpu": 200_000, "cuda": 2_000_000}
 """Particle budget of the automatic grid per device kind (settings ``auto_max_particles`` = None)."""
 
