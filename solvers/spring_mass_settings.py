@@ -39,7 +39,8 @@ shorter)."""
 class SpringMassSettings(SolverSettings):
     """Set-up options of the spring-mass solver.
 
-    anchors: N_a, number of anchors (fewer when the solid has fewer fill points).
+    anchors: N_a, number of anchors (fewer when the solid has fewer fill points); at most
+        ``max_fill_points // fill_per_anchor`` (33,333 by default), so that every anchor has its fill points.
     neighbours: springs per anchor before merging (k of the k-NN graph).
     fixed_springs: ranks below this keep full strength whatever the softness (at most ``neighbours``).
     softness: η, the global softness (dimensionless real).
@@ -83,6 +84,11 @@ class SpringMassSettings(SolverSettings):
 
     def check(self):
         self.fixed_springs = min(self.fixed_springs, self.neighbours)
+        if self.anchors * self.fill_per_anchor > self.max_fill_points:  # the network would outgrow its fill
+            raise UserError(
+                f"spring-mass setting 'anchors' = {self.anchors:,} needs {self.anchors * self.fill_per_anchor:,} fill "
+                f"points ({self.fill_per_anchor} per anchor), more than max_fill_points = {self.max_fill_points:,}: "
+                f"give at most {self.max_fill_points // self.fill_per_anchor:,} anchors, or raise max_fill_points")
         softness = as_number(self.softness)
         if softness is None:
             raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}")

@@ -69,3 +69,17 @@ def test_check_setting_edges(kind, value, expected):
     with pytest.raises(ValueError, match="unknown setting rule"):
         Rule("integer")
     assert set(KINDS) == {"count", "count0", "positive", "fraction", "unit", "choice", "flag"}
+
+
+def test_spring_mass_anchors_beyond_their_fill_are_refused_with_the_limit():
+    """A network of more anchors than its fill points can give ``fill_per_anchor`` each (``anchors=1e9``: the fill
+    stops at ``max_fill_points`` and every fill point would become an anchor, a build of minutes) is refused at once,
+    naming the largest count; raising ``max_fill_points`` admits it."""
+    from unipixie.solvers.spring_mass_settings import SpringMassSettings
+
+    with pytest.raises(UserError, match=r"anchors' = 1,000,000,000 .* at most 33,333 anchors"):
+        SpringMassSettings(anchors=10 ** 9)
+    assert SpringMassSettings(anchors=33_333).anchors == 33_333
+    with pytest.raises(UserError, match="at most 33,333"):
+        SpringMassSettings(anchors=33_334)
+    assert SpringMassSettings(anchors=50_000, max_fill_points=600_000).anchors == 50_000
