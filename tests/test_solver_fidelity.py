@@ -122,3 +122,32 @@ def test_cantilever_static_sag_is_measured_settled_under_drag():
     assert swung["oscillation_mean"] == pytest.approx(7.3e-3, rel=1e-3)
     assert swung["frequency"] == pytest.approx(7.19, rel=1e-3)
     assert abs(swung["mean_drift_per_period"]) < 1e-5
+
+
+def test_ladder_defaults_runs_each_solvers_bake_default_only_and_compares_them(monkeypatch):
+    """``bench fidelity --ladder defaults``: one run per solver, at its bake default, and the cross-solver rows of
+    those runs (what the GPU re-measure of 2026-11-28 used); ``fast`` runs the fast levels."""
+    import argparse
+
+    import numpy as np
+
+    from unipixie.core.benchmarks import fidelity
+
+    ran = []
+
+    def fake_run(scene, solver, settings, device):
+        ran.append((solver, dict(settings)))
+        offset = {"mpm": 0.0, "spring_mass": 0.001, "lbs": 0.002}[solver]
+        return {"stopping_distance": 0.38}, type("T", (), {"positions": np.full((3, 2, 3), offset)})(), 0.0
+
+    monkeypatch.setattr(fidelity, "run_scene", fake_run)
+    args = argparse.Namespace(device="cpu", scenes="slide", solvers="mpm,spring_mass,lbs", ladder="defaults",
+                              referee=None, trajectories=None, plots=None)
+    rows = fidelity.run(args)
+    defaults = {s: [st for _l, st, d, _v in fidelity.LADDERS["slide"][s] if d] for s in ("mpm", "spring_mass", "lbs")}
+    assert sorted(ran, key=str) == sorted([(s, st[0]) for s, st in defaults.items()], key=str)
+    cross = {tuple(r["solvers"]): r["rmse_m"] for r in rows if r.get("metric") == "trajectory_rmse_over_size"}
+    assert cross[("lbs", "mpm")] == pytest.approx(0.002 * np.sqrt(3)) and len(cross) == 3
+    ran.clear()
+    fidelity.run(argparse.Namespace(**{**vars(args), "ladder": "fast"}))
+    assert len(ran) == sum(1 for s in defaults for *_x, level in fidelity.LADDERS["slide"][s] if level == "fast")
