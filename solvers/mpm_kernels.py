@@ -447,12 +447,7 @@ def _make_g2p(grid: bool):
         jb = int(base[1])
         kb = int(base[2])
         block = env * nodes_per_env
-        # v = sum w v_i;  B = sum w v_i (node - x)^T = (sum w v_i (i, j, k)^T - v fx^T) dx
-        vel = wp.vec3(0.0)
-        bi = wp.vec3(0.0)
-        bj = wp.vec3(0.0)
-        bk = wp.vec3(0.0)
-        if particle:
+        if particle:  # v = Σ w v_i and APIC's offset sums (particle_advect forms C from them)
             if wp.static(grid):  # F ← (I + Δt ∇v) F here, ∇v = Σ v_i ∇w_ip; P2G then only applies the law
                 vel, bi, bj, bk, grad = gather_stencil_with_gradient(grid_v, block, ib, jb, kb, dims, w,
                                                                      bspline_slopes(fx))
