@@ -38,16 +38,22 @@ from __future__ import annotations
 
 import numpy as np
 
-RIGID_CONTACT_BETA = {"mpm": 0.55, "spring_mass": 2.0, "lbs": 2.0}
-"""β of each solver's rigid floor, k_r = β² M A / ℓ (module docstring), from a β sweep of the canonical drop
-(docs/contact.md): the reduced models' samples lie 10–16 mm apart, so at β = 0.55 their floor was as soft as a
-layer of the solid 35–52 mm thick under a 0.2 m cube and gave back the energy it stored as extra rebound
-(spring-mass 0.1857, 0.1724, 0.1709, 0.1706 m at β = 0.55, 1.1, 2, 4; LBS 0.1870 m at 0.55, 0.1768 m at 2 and
-4): at β = 2 the rebound no longer depends on β (the explicit step's cap binds for spring-mass).  MPM's
-particles lie 3 mm apart and its floor is stiff at 0.55; at β = 2 its rebound fell from 0.1669 to 0.1555 m
-(16 cells across, below the independent referee's 0.1598 m) and the tracked points chattered on the floor."""
+RIGID_CONTACT_BETA = {"mpm": 2.0, "spring_mass": 2.0, "lbs": 2.0}
+"""β of each solver's rigid floor, k_r = β² M A / ℓ (module docstring): in every solver the β above which the
+canonical drop no longer depends on it (docs/contact.md).  The reduced models' samples lie 10–16 mm apart, so at
+β = 0.55 their floor was as soft as a layer of the solid 35–52 mm thick under a 0.2 m cube and gave back the energy
+it stored as extra rebound (spring-mass 0.1857, 0.1724, 0.1709, 0.1706 m at β = 0.55, 1.1, 2, 4; LBS 0.1870 m at
+0.55, 0.1768 m at 2 and 4).  MPM (since 2026-11-28; 0.55 before): its particles' floor spring is capped at
+ω Δt ≤ 1 (:data:`MAX_CONTACT_RATE`), which binds from β ≈ 2 on — rebound 0.1666 / 0.1578 / 0.1556 / 0.1556 m at
+β = 0.55 / 1 / 2 / 4 (16 cells across, particle springs undamped), and the stick-slip landing of the diagnosis's ``friction_drop`` the same to
+the last digit at 2 and 4.  At 0.55 MPM's floor was a layer 3.3 particle spacings thick of the solid: the canonical
+drop rebounded +4.1 / +2.9 / +2.0 % of the independent referee at 16 / 24 / 32 cells, and the cube landing at
+1 m/s sideways (μ 0.4, 12 cells) spun on its leading edge and tipped over (88° by 0.6 s) where the referee's rocks back;
+at 2 it rocks back (4° at 0.6 s with the critically damped particle springs below), and the drop converges from
+below: 0.1551 / 0.1570 / 0.1574 / 0.1583 / 0.1585 m at 16 / 24 / 32 / 48 / 64 cells (−3.1 … −0.9 %), contact 33–34 ms
+(one H100, docs/fidelity.md)."""
 
-RIGID_SAMPLE_DAMPING_RATIO = {"mpm": 0.0, "spring_mass": 1.0, "lbs": 0.0}
+RIGID_SAMPLE_DAMPING_RATIO = {"mpm": 1.0, "spring_mass": 1.0, "lbs": 0.0}
 """ζ of each contact sample's own spring on the rigid floor (the damper 2 ζ √(k m) on the sample's normal speed, at
 most m/Δt: :func:`.contact_kernels.ground_contact_impulse`), per solver using that function (LBS has its own law).
 
@@ -60,8 +66,12 @@ flat (μ 0.4, 1 m/s, 0.05 m) was 13–16 % below the referee's, and the diagnosi
 (issue 18, docs/diagnosis.md).  Damped, the canonical drop's rebound converges to the referee's (springs only:
 0.1607 / 0.1627 m at 512 / 2048 anchors against 0.1598 m, undamped 0.1709 m at both; with the volumetric term
 0.1562 / 0.1588 / 0.1593 m at 512 / 2048 / 8192 against the symmetric referee's 0.1600 m, docs/spring_mass.md);
-at 192 anchors the bottom layer's normal energy is lost at the impact (0.1480 m, springs only).  MPM: 0 — its particles are a few mm apart and its friction acts on the grid nodes,
-where the impulse of a stick-slip impact already matched the referee's (0.78 of the 1 m/s, 12 and 16 cells)."""
+at 192 anchors the bottom layer's normal energy is lost at the impact (0.1480 m, springs only).  MPM: 1 as well
+(since 2026-11-28; 0 before, when its floor was β = 0.55).  On the stiffer floor (β = 2) undamped particle springs
+let the lowest layer chatter on coarse grids: the canonical drop's lowest tracked point left the floor after 2 / 1 ms
+at 8 / 10 cells across (the solid's contact lasts 33 ms); critically damped, 33 / 34 / 34 / 33 ms at 8 / 10 / 12 /
+16 cells, rebound 0.1505 / 0.1511 / 0.1531 / 0.1551 m (0.1535 / 0.1516 / 0.1540 / 0.1556 undamped), and the
+friction_drop landing keeps 0.204 m/s of its 1 m/s (referee 0.217) and rocks back."""
 
 SAMPLE_CONTACT_IMPLICIT = {"mpm": 0, "spring_mass": 1}
 """Whether each contact sample takes the ground's normal spring and damper implicitly (1: at the end of the step,

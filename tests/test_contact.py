@@ -254,6 +254,49 @@ def test_spring_mass_friction_impulse_of_a_sliding_landing_matches_the_referee()
     assert 0.2 < ref < 0.24, ref
 
 
+def _tilt_degrees(x: np.ndarray) -> np.ndarray:
+    """(T,) degrees: how far a cube has turned about y, from the vector between its lower and upper faces' points.
+
+    x: (T, N, 3) m, points of the cube (the faces are the points within 5 mm of the first frame's lowest / highest)."""
+    z0 = x[0, :, 2]
+    axis = x[:, z0 > z0.max() - 5e-3].mean(1) - x[:, z0 < z0.min() + 5e-3].mean(1)
+    return np.degrees(np.arctan2(axis[:, 0], axis[:, 2]))
+
+
+def test_mpm_cube_landing_sideways_with_friction_rocks_back_as_the_referee():
+    """The diagnosis's ``friction_drop`` scene (issue 18): a 0.2 m cube lands flat at 1 m/s sideways from 0.05 m on a
+    floor with μ = 0.4.  The friction of the impact tips it forward onto its leading edge; the independent referee's
+    cube (4 cells per edge, penalty law) reaches 27° and rocks back (−10° at 0.6 s).  With MPM's former floor
+    (β = 0.55: a spring as soft as a layer of the solid 3.3 particle spacings thick) the cube spun more, kept turning
+    on its edge and fell over (88° at 0.6 s, 12 cells across); at β = 2, where the floor is as stiff as MPM's step
+    allows (``RIGID_CONTACT_BETA``), it rocks back (34° at most, 9° at 0.6 s; the same at 16 cells)."""
+    import trimesh
+
+    from unipixie.solvers.body import Body
+    from unipixie.solvers.material_sampling import HomogeneousMaterial
+    from unipixie.solvers.scenario import Scenario
+    from unipixie.training.independent_fem import Case, FEMModel
+
+    mu, times = 0.4, np.arange(151) * 0.004
+    case = Case("landing", scenario="drop", velocity=(1.0, 0.0, 0.0), height=0.05, spacing=0.05,
+                effects=[f"ground_friction:mu={mu}"])
+    mesh, scenario = case.placed()
+    model = FEMModel(mesh, {"E": case.E, "nu": case.nu, "density": case.density}, scenario,
+                     case.effect_dicts(mesh.nodes))
+    referee = _tilt_degrees(model.run(times))
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    box.apply_translation((0.0, 0.0, 0.15))
+    sim = api.prepare("mpm", Body.from_mesh(box), HomogeneousMaterial(case.E, case.nu, case.density),
+                      Scenario(ground_height=0.0, initial_velocity=np.array([1.0, 0.0, 0.0])), times,
+                      settings={"cells_across": 12})
+    traj = sim.run([fx.make("ground_friction", mu=mu)], particle_states=True)
+    tilt = _tilt_degrees(np.asarray(traj.particle_positions, np.float64))
+    assert 20.0 < referee.max() < 35.0 and referee[-1] < 15.0, referee  # the referee tips and rocks back
+    assert tilt[-1] < 15.0, f"MPM's cube is still turned {tilt[-1]:.0f}° at 0.6 s (it tipped over)"
+    assert abs(tilt.max() - referee.max()) < 10.0, (tilt.max(), referee.max())
+
+
 def test_lbs_drop_at_its_bake_default_rebounds_as_the_referee_and_is_converged_in_the_step(repo_root):
     """LBS's ground spring is capped by its step (ω Δt ≤ IMPLICIT_MAX_CONTACT_RATE), so the drop converges in the
     step: at the former 5 ms default the floor was soft and the cube rebounded +10.5 % of the independent referee's
