@@ -17,6 +17,8 @@ from unipixie.core import measurement
 from unipixie.core.errors import UserError
 from unipixie.training import independent_fem as fem
 
+from motion_helpers import rotation_degrees
+
 MATERIAL = {"E": 1.0e5, "nu": 0.3, "density": 1000.0}
 DROP_MESH_BOUND = 0.005
 """m: the canonical drop's rebound peak moves by less than this from 4 to 8 cells a side (hard law)."""
@@ -230,14 +232,6 @@ def _energy_above_rest(model, x, v, size=0.1):
     return model.energy(x, v)["total"] - model.mass.sum() * 9.81 * size / 2
 
 
-def _tilt_degrees(rest: np.ndarray, x: np.ndarray) -> float:
-    """The angle (degrees) of the best-fit rotation taking ``rest`` (n, 3) to ``x`` (n, 3)."""
-    U, _, Vt = np.linalg.svd((rest - rest.mean(0)).T @ (x - x.mean(0)))
-    d = np.sign(np.linalg.det(U @ Vt))
-    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 @pytest.mark.parametrize("mirrored", [True, False])
 def test_a_cube_dropped_flat_spins_only_on_an_unmirrored_mesh(mirrored):
     """A homogeneous cube dropped flat onto a frictionless floor cannot start to spin (the floor's forces are
@@ -250,7 +244,7 @@ def test_a_cube_dropped_flat_spins_only_on_an_unmirrored_mesh(mirrored):
     sc = {"gravity": [0.0, 0.0, -9.81], "ground": {"height": 0.0}, "initial_velocity": [0.0, 0.0, 0.0]}
     material = {"E": 2.0e5, "nu": 0.3, "density": 1000.0}  # the validation cubes' material
     x = fem.FEMModel(mesh, material, sc).run(np.linspace(0.0, 0.45, 10))
-    tilt = _tilt_degrees(mesh.nodes, x[-1])
+    tilt = rotation_degrees(mesh.nodes, x[-1])
     if mirrored:
         assert tilt < 1e-3
     else:
