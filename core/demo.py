@@ -6,8 +6,9 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
    plant** and a **rubber duck**, as textured ``.glb`` files, and imports each into an empty Blender
    scene as one closed mesh (parts united), with a ground plane, a camera and labels.
 2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
-   extracts the **offline** features (``offline-random-vit-w32``: an untrained ViT, not CLIP — what the
-   shipped model is trained on), and predicts the material with the model (default: the shipped
+   extracts the features the model was trained on (for the shipped model the render-pass appearance features
+   ``appearance-gbuffer-v1``: Cycles' base colour, roughness, metallic and normal passes, no network and no
+   weights, not CLIP; a model trained on the offline ViT gets those), and predicts the material with the model (default: the shipped
    ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1; duck: 0.5), one batched
    pass per object — not the panel's 11-value α sweep, which is most of the model's time on a CPU (the
    panel's *Predict* makes it later for the α slider).  Copies of the objects share the prediction
@@ -159,16 +160,19 @@ class DemoResult:
 
 # --------------------------------------------------------------------------- checks and sizes
 def check_checkpoint(checkpoint=None) -> Path:
-    """The model the demo uses, refused early when missing or trained on other features than the offline ones."""
-    from . import clip_features as cf
+    """The model the demo uses, refused early when missing or trained on features that need downloaded weights
+    (CLIP): the demo extracts the features the model names, and only weight-free extractors
+    (:mod:`.extractors`: the offline ViT, the render-pass appearance) can run anywhere without a download."""
+    from . import extractors
     from .pipeline import checkpoint_feature_model, resolve_checkpoint
 
     ckpt = resolve_checkpoint(checkpoint)
     trained_on, width = checkpoint_feature_model(ckpt)
-    if trained_on != cf.OFFLINE_FEATURE_MODEL:
-        raise UserError(f"the demo extracts the offline features ({cf.OFFLINE_FEATURE_MODEL!r}, no CLIP weights "
-                        f"needed) but the model in {ckpt} was trained on {trained_on!r} (D = {width}); use a "
-                        "checkpoint trained on the offline features (the shipped models/default is)")
+    if extractors.needs_weights(trained_on):
+        free = ", ".join(extractors.feature_model(n) for n in extractors.EXTRACTORS if n != "clip")
+        raise UserError(f"the demo needs no downloaded weights, but the model in {ckpt} was trained on {trained_on!r} "
+                        f"(D = {width}), which needs CLIP weights; use a checkpoint trained on weight-free features "
+                        f"({free}; the shipped models/default is)")
     return ckpt
 
 
@@ -300,13 +304,13 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
     stiff for the demo's substep limit) is reported and recorded in the summary (``failed``); the other
     bakes and the pictures are still made.
     """
-    from . import procedural
+    from . import extractors, procedural
     from .bake import MODEL_HEADS
     from .blender_io import demo_scene as ds
     from .blender_io import pipeline as pio
     from .blender_io.bake import registered_properties
     from .jobs import run_side_by_side
-    from .pipeline import PipelineSettings
+    from .pipeline import PipelineSettings, checkpoint_feature_model
 
     plan = QUICK if quick else FULL
     t_start, cpu_start = time.perf_counter(), time.process_time()
@@ -366,9 +370,10 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
         stages.done()
 
         # 2. render views + features --------------------------------------------------------------
+        trained_on, _ = checkpoint_feature_model(ckpt)
         p = stages.sub("features", f"rendering {settings.view_count} views per object ({settings.engine}, "
                                    f"{settings.resolution} px: the model's training recipe) and extracting the "
-                                   "offline features (untrained ViT, not CLIP)")
+                                   f"features it was trained on: {extractors.label(trained_on)}")
         for src in (plants[0], duck):
             result = pio.run_to_end(pio.features_step(src, settings), p.sub(0.5, 1.0, src.name))
             say(f"         {src.name}: {int(result.grid.occupancy.sum())} voxels, D = {result.grid.dim} "

@@ -48,8 +48,8 @@ def test_readme_bake_line_works_on_a_fresh_blend_and_reuses_the_cache(blender, t
     printed = capsys.readouterr().out
     steps = _steps(printed)
     assert list(steps) == ["Render views", "Features", "Predict"], printed
-    assert steps["Render views"][0].startswith("8 views (workbench, 224 px)")        # the shipped model's recipe
-    assert "offline-random-vit-w32" in steps["Features"][0] and steps["Predict"][0].startswith("α 0.5 (mpm)")
+    assert steps["Render views"][0].startswith("8 views (cycles, 224 px)")           # the shipped model's recipe
+    assert "appearance-gbuffer-v1" in steps["Features"][0] and steps["Predict"][0].startswith("α 0.5 (mpm)")
     assert not any("from the cache" in text for text, _ in steps.values())
     assert "baked 'Block' with mpm (model at α 0.5 (from the α sweep" in printed
 

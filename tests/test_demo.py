@@ -108,3 +108,15 @@ def test_demo_command_errors_are_one_line(tmp_path, monkeypatch, capsys, tiny_ch
     assert main(["demo", "--quick", "--out", str(tmp_path / "d"), "--checkpoint", str(other)]) == 2
     assert "trained on 'ViT-B-16'" in capsys.readouterr().err
     assert not (tmp_path / "d" / "objects").exists()
+
+
+def test_demo_takes_a_model_of_any_weight_free_features(tmp_path):
+    """The demo extracts what the model names: the render-pass appearance features need no weights either."""
+    from unipixie.core import extractors
+    from unipixie.core.demo import check_checkpoint
+    from unipixie.core.model import UniPixieModel, preset, save_model
+
+    for name, width in (("appearance", 8), ("offline", 32)):
+        ckpt = save_model(UniPixieModel(preset("tiny", feature_model=extractors.feature_model(name), feature_dim=width,
+                                               patch_size=4, spring_anchors=8)), tmp_path / name)
+        assert check_checkpoint(ckpt) == ckpt

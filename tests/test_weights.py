@@ -266,7 +266,7 @@ def test_the_panel_button_fetches_and_the_features_options_say_what_the_model_ex
     monkeypatch.delenv(cf.CLIP_WEIGHTS_ENV, raising=False)
     wm = bpy.context.window_manager
     preferences.store_extractor_info(bpy.context)
-    assert "expects offline-random-vit-w32 features" in wm.unipixie_extractor_info and not wm.unipixie_extractor_fetch
+    assert "expects appearance-gbuffer-v1 features" in wm.unipixie_extractor_info and not wm.unipixie_extractor_fetch
 
     clip_model = save_model(UniPixieModel(preset("tiny", feature_model="ViT-B-16", feature_dim=WIDTH, patch_size=4,
                                                  spring_anchors=8)), tmp_path / "clip_model")

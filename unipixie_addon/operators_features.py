@@ -5,8 +5,9 @@ Both run as jobs (progress bar, Esc cancels after the current view) and call
 stored on the object (``object.unipixie_features``, saved with the .blend).
 The feature model is the one the chosen model checkpoint expects (its feature
 recipe's ``extractor``, else its config's ``feature_model``), as for *Run all*:
-the offline extractor (``offline-random-vit-w32``, an untrained random ViT, not
-CLIP — what the shipped model is trained on) or CLIP (e.g. ViT-B-16, from the
+the render-pass appearance extractor (``appearance-gbuffer-v1``, Cycles' passes,
+no weights, not CLIP — what the shipped model is trained on), the offline
+extractor (``offline-random-vit-w32``, an untrained random ViT, not CLIP) or CLIP (e.g. ViT-B-16, from the
 *CLIP weights* preference or the default weights folder that *Fetch CLIP
 weights* fills).  The sub-panel says which, and offers the fetch when the
 weights are missing.

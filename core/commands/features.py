@@ -37,7 +37,7 @@ def add_arguments(p):
                           "<cache>/clip/ViT-B-16/)")
     src.add_argument("--offline-features", action="store_true",
                      help="use the seeded untrained offline ViT (offline-random-vit-w32, D = 32; NOT CLIP; what the "
-                          "shipped demo model is trained on)")
+                          "models shipped before 2026-11-28 were trained on)")
     from ..extractors import EXTRACTORS
 
     p.add_argument("--extractor", choices=tuple(EXTRACTORS), metavar="NAME",
