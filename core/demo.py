@@ -8,10 +8,10 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
 2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
    extracts the features the model was trained on (for the shipped model the render-pass appearance features
    ``appearance-gbuffer-v1``: Cycles' base colour, roughness, metallic and normal passes, no network and no
-   weights, not CLIP; a model trained on the offline ViT gets those), and predicts the material with the model (default: the shipped
-   ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1; duck: 0.5), one batched
-   pass per object — not the panel's 11-value α sweep, which is most of the model's time on a CPU (the
-   panel's *Predict* makes it later for the α slider).  Copies of the objects share the prediction
+   weights, not CLIP; a model trained on the offline ViT gets those), and predicts the material with the
+   model (default: the shipped ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1;
+   duck: 0.5), one batched pass per object — not the panel's 11-value α sweep, which is most of the
+   model's time on a CPU (the panel's *Predict* makes it later for the α slider).  Copies of the objects share the prediction
    (their pipeline record is copied; the fingerprint ignores placement).  Meanwhile a worker thread
    compiles the solvers' Warp kernels (a fresh machine's kernel cache is empty).
 3. Bakes the plant with **MPM at α = 0, 0.5 and 1** and with the **spring-mass** solver at α = 0.5
