@@ -5,15 +5,15 @@ What it does (every step prints where it is and shows progress; Ctrl-C stops it)
 1. Builds two procedural objects of the dataset (:mod:`unipixie.core.procedural`): a **potted
    plant** and a **rubber duck**, as textured ``.glb`` files, and imports each into an empty Blender
    scene as one closed mesh (parts united), with a ground plane, a camera and labels.
-2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views,
-   extracts the features the model was trained on (for the shipped model the render-pass appearance features
+2. Runs the object pipeline (:mod:`unipixie.core.blender_io.pipeline`) on each: renders views, extracts the
+   features the model was trained on (for the shipped model the render-pass appearance features
    ``appearance-gbuffer-v1``: Cycles' base colour, roughness, metallic and normal passes, no network and no
-   weights, not CLIP; a model trained on the offline ViT gets those), and predicts the material with the
-   model (default: the shipped ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1;
-   duck: 0.5), one batched pass per object — not the panel's 11-value α sweep, which is most of the
-   model's time on a CPU (the panel's *Predict* makes it later for the α slider).  Copies of the objects share the prediction
-   (their pipeline record is copied; the fingerprint ignores placement).  Meanwhile a worker thread
-   compiles the solvers' Warp kernels (a fresh machine's kernel cache is empty).
+   weights, not CLIP; a model trained on the offline ViT gets those), and predicts the material with the model
+   (default: the shipped ``models/default``) at exactly the α values the demo bakes (plant: 0, 0.5, 1; duck: 0.5),
+   one batched pass per object — not the panel's 11-value α sweep, which is most of the model's time on a CPU (the
+   panel's *Predict* makes it later for the α slider). Copies of the objects share the prediction (their pipeline
+   record is copied; the fingerprint ignores placement). Meanwhile a worker thread compiles the solvers' Warp
+   kernels (a fresh machine's kernel cache is empty).
 3. Bakes the plant with **MPM at α = 0, 0.5 and 1** and with the **spring-mass** solver at α = 0.5
    (four copies side by side; each pot is clamped and the rest pushed sideways), and the duck, dropped
    on the ground, with **LBS** at α = 0.5 — on the CPU as many bakes at once as there are cores (Warp runs
