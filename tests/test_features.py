@@ -253,11 +253,18 @@ def test_features_command_writes_grid_and_pictures(blender, tmp_path, capsys, no
 
 
 @pytest.mark.blender
-def test_panel_operators_leave_cached_files_and_properties(blender):
+def test_panel_operators_leave_cached_files_and_properties(blender, tmp_path, monkeypatch):
+    """The operators with a model trained on the offline features (the shipped model's render-pass features are
+    tested through the pipeline: tests/test_bake_auto.py, tests/test_appearance_features.py)."""
     bpy = blender
     from pathlib import Path
 
+    from unipixie.core.demo import untrained_checkpoint
     from unipixie.core.types import FeatureGrid
+    from unipixie.unipixie_addon import preferences
+
+    offline_model = untrained_checkpoint(tmp_path / "tiny", "tiny", spring_anchors=64)
+    monkeypatch.setattr(preferences._Defaults, "checkpoint", str(offline_model))
 
     bpy.ops.mesh.primitive_torus_add(major_radius=0.8, minor_radius=0.25)
     torus = bpy.context.active_object
@@ -266,7 +273,7 @@ def test_panel_operators_leave_cached_files_and_properties(blender):
     state = torus.unipixie_features
     assert state.view_count == 4 and Path(state.views_path).is_file() and Path(state.sheet_path).is_file()
     assert torus.unipixie.status == "4 views rendered"
-    # preferences without CLIP weights -> the offline extractor, named as such
+    # a model trained on the offline features, no CLIP weights -> the offline extractor, named as such
     assert bpy.ops.unipixie.compute_features(view_count=4, resolution=48, engine="workbench") == {"FINISHED"}
     assert state.feature_model == "offline-random-vit-w32" and Path(state.slices_path).is_file()
     grid = FeatureGrid.load(state.grid_path)
