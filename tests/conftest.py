@@ -48,6 +48,14 @@ def repo_root() -> Path:
     return REPO_ROOT
 
 
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    """An untrained tiny model for the offline features (64³ grid, patch 4, 64 spring anchors)."""
+    from unipixie.core.demo import untrained_checkpoint
+
+    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
+
+
 @pytest.fixture
 def blender():
     """The bpy module with an empty factory scene and the UniPixie add-on registered (in-process)."""

@@ -10,13 +10,6 @@ import pytest
 pytestmark = pytest.mark.blender
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    from unipixie.core.demo import untrained_checkpoint
-
-    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
-
-
 def _picture(path):
     from PIL import Image
 

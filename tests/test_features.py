@@ -253,18 +253,16 @@ def test_features_command_writes_grid_and_pictures(blender, tmp_path, capsys, no
 
 
 @pytest.mark.blender
-def test_panel_operators_leave_cached_files_and_properties(blender, tmp_path, monkeypatch):
+def test_panel_operators_leave_cached_files_and_properties(blender, tiny_checkpoint, monkeypatch):
     """The operators with a model trained on the offline features (the shipped model's render-pass features are
     tested through the pipeline: tests/test_bake_auto.py, tests/test_appearance_features.py)."""
     bpy = blender
     from pathlib import Path
 
-    from unipixie.core.demo import untrained_checkpoint
     from unipixie.core.types import FeatureGrid
     from unipixie.unipixie_addon import preferences
 
-    offline_model = untrained_checkpoint(tmp_path / "tiny", "tiny", spring_anchors=64)
-    monkeypatch.setattr(preferences._Defaults, "checkpoint", str(offline_model))
+    monkeypatch.setattr(preferences._Defaults, "checkpoint", str(tiny_checkpoint))
 
     bpy.ops.mesh.primitive_torus_add(major_radius=0.8, minor_radius=0.25)
     torus = bpy.context.active_object

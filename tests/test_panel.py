@@ -12,13 +12,6 @@ import pytest
 pytestmark = pytest.mark.blender
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    from unipixie.core.demo import untrained_checkpoint
-
-    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
-
-
 @pytest.fixture
 def panel(blender, tiny_checkpoint, monkeypatch):
     """bpy with the add-on, preferences pointing at the tiny model and 4 views."""

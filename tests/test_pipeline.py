@@ -15,14 +15,6 @@ from unipixie.core.errors import UserError
 
 # --------------------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    """An untrained tiny model for the offline features (64³ grid, patch 4, 64 spring anchors)."""
-    from unipixie.core.demo import untrained_checkpoint
-
-    return untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", "tiny", spring_anchors=64)
-
-
-@pytest.fixture(scope="module")
 def blob_grid(tmp_path_factory):
     """A feature grid of an ellipsoid (~2.4k voxels) with deterministic offline-width features, saved to disk."""
     from unipixie.core import clip_features as cf
