@@ -86,6 +86,21 @@ def test_resume_skips_finished_objects(built):
     assert {p: p.stat().st_mtime_ns for p in (built / "samples").glob("*.npz")} == stamps
 
 
+def test_a_build_can_take_only_some_splits(built, tmp_path):
+    fractions = (0.5, 0.17, 0.33)
+    tests = [i for i in range(COUNT) if D.split_of(i, fractions) == "test"]
+    assert D.shard_indices(COUNT, (0, 1), ("test",), fractions) == tests and 0 < len(tests) < COUNT
+    assert D.shard_indices(COUNT, (1, 2), ("test", "val"), fractions) == [
+        i for i in range(1, COUNT, 2) if D.split_of(i, fractions) != "train"]
+    settings = D.BuildSettings.from_dict(json.loads((built / "build.json").read_text()))
+    summary = D.build(built, COUNT, settings, splits=("test",))
+    assert summary["built"] == [] and len(summary["skipped"]) == len(tests)
+    with pytest.raises(UserError, match="splits tset: the splits are train, val, test"):
+        D.shard_indices(COUNT, (0, 1), ("tset",))
+    assert cli(["dataset", "build", str(tmp_path / "x"), "--count", "3", "--only-splits", "tset"] + TINY) == 2
+    assert not (tmp_path / "x").exists()
+
+
 def test_other_settings_into_the_same_directory_are_refused(built):
     with pytest.raises(UserError, match="built with other settings.*resolution"):
         D.init_build(built, D.BuildSettings(resolution=32))
@@ -172,6 +187,15 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
     assert {("mpm", "unipixie"), ("mpm", "unipixie_mean"), ("mpm", "unet_deterministic"), ("lbs", "unipixie"), ("spring_mass", "unipixie"),
             ("lbs", "test_time_fit"), ("spring_mass", "test_time_fit")} <= rows
     assert all(r["rmse_m"] is not None and r["psnr"] is not None for r in report["table2"] if r["method"] == "unipixie")
+    # the per-object rows are kept and summarised by class (where a solver cannot follow the MPM motion)
+    first = report["table2_objects"][0]
+    cls = json.loads((built / "objects" / first / "record.json").read_text())["semantic_class"]
+    assert {r["semantic_class"] for r in report["table2_rows"]} == {cls}
+    by_class = {(x["solver"], x["method"]): x for x in report["table2_by_class"]}
+    fit_rows = [r["relative_rmse"] for r in report["table2_rows"] if (r["solver"], r["method"]) == ("lbs", "test_time_fit")]
+    assert by_class[("lbs", "test_time_fit")]["relative_rmse"] == pytest.approx(sum(fit_rows) / len(fit_rows))
+    assert "Table 2 by class" in (out / "report.md").read_text()
+    assert "the learned head's error is" in (out / "report.md").read_text()
     assert (out / "logE_distributions.png").stat().st_size > 10_000
 
     # the reference predictors (training/oracle.py): scored by the same code, kept apart from the methods

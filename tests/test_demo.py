@@ -79,6 +79,20 @@ def test_quick_demo_bakes_objects_that_move_and_alpha_matters(tmp_path, tiny_che
     d0 = bio.evaluated_positions(a0, demo.QUICK.frames) - bio.evaluated_positions(a0, 1)
     d1 = bio.evaluated_positions(a1, demo.QUICK.frames) - bio.evaluated_positions(a1, 1)
     assert np.abs(d0 - d1).max() > 1e-5
+
+    # bench demo_plant refines the demo's pair from the saved file (coarse levels here): the same-α MPM plant's
+    # scene, exported once, gives every run; the finest MPM level is the reference
+    scene_file = tmp_path / "plant_scene.pkl"
+    assert main(["bench", "demo_plant", "--blend", summary["blend"], "--checkpoint", str(tiny_checkpoint),
+                 "--export", str(scene_file)]) == 0
+    assert main(["bench", "demo_plant", "--scene", str(scene_file), "--cells", "5,4", "--anchors", "32",
+                 "--out", str(tmp_path / "demo_plant.json")]) == 0
+    rows = json.loads((tmp_path / "demo_plant.json").read_text())["results"]
+    rms = {r["case"]: r["value"] for r in rows if r["metric"] == "displacement_rms_over_size"}
+    assert sorted(rms) == ["demo plant α 0.5, MPM 4 cells across", "demo plant α 0.5, spring-mass 32 anchors"]
+    assert all(0.0 < v < 1.0 for v in rms.values())
+    assert {r["metric"] for r in rows} == {"displacement_rms_over_size", "crown_sway_hz", "crown_last_swing_m",
+                                           "crown_lean_m"}
     bpy.ops.wm.read_factory_settings(use_empty=True)
 
 

@@ -249,3 +249,28 @@ def test_an_older_evaluation_gets_its_facts_from_the_dataset(tmp_path, capsys, m
     monkeypatch.setattr(D, "DatasetDir", lambda path: ds)
     assert eb.main([str(tmp_path / "eval"), "--data", "the_dataset"]) == 0
     assert json.loads((tmp_path / "eval" / "breakdown.json").read_text())["methods"]["m"]["not_available"] == {}
+
+
+# --------------------------------------------------------------------------- Table 2 by semantic class
+def test_table2_by_class_averages_objects_and_compares_heads_with_fits():
+    from unipixie.training.evaluation_report import table2_by_class_markdown
+
+    def row(oid, cls, solver, method, alpha, rel):
+        return {"object_id": oid, "semantic_class": cls, "solver": solver, "method": method, "alpha": alpha,
+                "relative_rmse": rel}
+
+    rows = [row("a", "sand_pile", "lbs", "test_time_fit", 0.0, 0.30), row("a", "sand_pile", "lbs", "test_time_fit", 1.0, 0.10),
+            row("b", "sand_pile", "lbs", "test_time_fit", 0.0, 0.40), row("b", "sand_pile", "lbs", "test_time_fit", 1.0, 0.40),
+            row("c", "fruit", "lbs", "test_time_fit", 0.0, 0.02), row("c", "fruit", "lbs", "unipixie", 0.0, 0.06),
+            row("a", "sand_pile", "lbs", "unipixie", 0.0, 0.30), row("b", "sand_pile", "lbs", "unipixie", 0.0, 0.30),
+            row("c", "fruit", "mpm", "unipixie", 0.0, None)]               # a failed simulation is left out
+    out = {(x["semantic_class"], x["solver"], x["method"]): x for x in ev.table2_by_class(rows)}
+    sand = out[("sand_pile", "lbs", "test_time_fit")]
+    # each object's mean over α first (a: 0.2, b: 0.4), then the mean over objects
+    assert sand["objects"] == 2 and sand["relative_rmse"] == pytest.approx(0.3)
+    assert sand["worst_object"] == "b" and sand["worst_relative_rmse"] == pytest.approx(0.4)
+    assert ("fruit", "mpm", "unipixie") not in out
+    md = "\n".join(table2_by_class_markdown(ev.table2_by_class(rows), {"unipixie": "unipixie"}))
+    assert "| sand_pile | 2 | 0.300 | 0.300 |" in md and "| fruit | 1 | 0.020 | 0.060 |" in md
+    # object-weighted over the classes that have both: (2 × 0.30 + 0.06) / (2 × 0.30 + 0.02)
+    assert f"lbs: the learned head's error is {(0.66 / 0.62):.2f}× the test-time fit's" in md

@@ -161,11 +161,21 @@ def split_of(index: int, fractions=(0.8, 0.1, 0.1)) -> str:
     return "train"
 
 
-def shard_indices(count: int, shard: tuple[int, int] = (0, 1)) -> list[int]:
+SPLITS = ("train", "val", "test")
+
+
+def shard_indices(count: int, shard: tuple[int, int] = (0, 1), splits=None, fractions=(0.8, 0.1, 0.1)) -> list[int]:
+    """Object indices ``0..count-1`` of shard ``i/n`` (index ≡ i mod n); with ``splits`` (names of
+    :data:`SPLITS`), only those whose :func:`split_of` under ``fractions`` is one of them (e.g. the test objects, to
+    build them alone with the full ground truth for Table 2)."""
     i, n = shard
     if not (n >= 1 and 0 <= i < n):
         raise UserError(f"shard {i}/{n}: need 0 <= i < n")
-    return [k for k in range(int(count)) if k % n == i]
+    if splits is not None:
+        unknown = sorted(set(splits) - set(SPLITS))
+        if unknown or not splits:
+            raise UserError(f"splits {', '.join(unknown) or '(none)'}: the splits are {', '.join(SPLITS)}")
+    return [k for k in range(int(count)) if k % n == i and (splits is None or split_of(k, fractions) in splits)]
 
 
 # =========================================================================== atomic files
@@ -394,8 +404,9 @@ def _write_feature_recipe(root: Path, settings: BuildSettings) -> None:
 
 
 def build(root, count: int, settings: BuildSettings | None = None, shard: tuple[int, int] = (0, 1),
-          retry_failed: bool = False, progress: Optional[Progress] = None, log=None) -> dict:
+          retry_failed: bool = False, progress: Optional[Progress] = None, log=None, splits=None) -> dict:
     """Build objects ``0..count-1`` of this shard into ``root`` (skipping finished ones), then refresh the card.
+    ``splits``: build only the objects of these splits (:func:`shard_indices`).
 
     Returns a summary: ``built``, ``skipped``, ``failed`` (ids), ``seconds``.  An object that raises a
     :class:`UserError` or a simulation failure is recorded as failed (``record.json`` with the error)
@@ -406,7 +417,7 @@ def build(root, count: int, settings: BuildSettings | None = None, shard: tuple[
 
     root = Path(root)
     settings = init_build(root, settings or BuildSettings())
-    indices = shard_indices(count, shard)
+    indices = shard_indices(count, shard, splits, settings.split)
     progress = progress or Progress(total=len(indices), description=f"dataset shard {shard[0]}/{shard[1]}")
     renderer = Renderer(settings)
     summary = {"built": [], "skipped": [], "failed": [], "seconds": 0.0}

@@ -574,6 +574,7 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
               "references_skipped": oracle_skipped,
               "table1": t1, "in_range": {k: v.get("in_range", {}) for k, v in t1.items()},
               "table2": _summarise_table2(table2_rows, renders), "table2_objects": sim_ids,
+              "table2_rows": table2_rows, "table2_by_class": table2_by_class(table2_rows),
               "table2_failures": failures, "breakdown": breakdown, "seconds": time.perf_counter() - t_all}
     card = Path(data) / "dataset.json"
     if card.is_file():
@@ -624,11 +625,13 @@ def _table2_object(ds, oid, sample, preds, alphas, settings: EvalSettings, out: 
     sims = simulate_methods(obj, gt, sample, preds, alphas, gt_settings, settings, progress)
     size = float(gt["info"]["size"])
     gt_alphas = [float(a) for a in gt["mpm_alphas"]]
+    semantic_class = ds.record(oid).get("semantic_class")
     rows = []
     for (solver, method, a), r in sims.items():
         target = gt["mpm_positions"][gt_alphas.index(a)]
         rmse = G.motion_rmse(r["positions"], target) if r["positions"] is not None else None
-        rows.append({"object_id": oid, "solver": solver, "method": method, "alpha": a, "rmse_m": rmse,
+        rows.append({"object_id": oid, "semantic_class": semantic_class, "solver": solver, "method": method,
+                     "alpha": a, "rmse_m": rmse,
                      "relative_rmse": None if rmse is None else rmse / size, "seconds": r["seconds"],
                      "error": r["error"]})
     rend = []
@@ -672,6 +675,32 @@ def _save_sheet(path: Path, imgs: dict) -> None:
     sheet = np.concatenate(tiles, axis=1)
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray((np.clip(sheet, 0, 1) * 255).astype(np.uint8)).save(path)
+
+
+def table2_by_class(rows: list) -> list:
+    """Table 2's motion error per semantic class: where a solver cannot follow the ground-truth MPM.
+
+    ``rows``: the per-object rows of Table 2 (``object_id``, ``semantic_class``, ``solver``, ``method``,
+    ``alpha``, ``relative_rmse``).  Returns one dict per (class, solver, method): ``objects``, and
+    ``relative_rmse`` — the mean over its objects and α of the tracked-point RMSE divided by the object's size
+    (dimensionless) — with the ``worst`` object's id and value.  Failed simulations are left out.
+    """
+    out = []
+    keys = sorted({(r.get("semantic_class") or "?", r["solver"], r["method"]) for r in rows})
+    for cls, solver, method in keys:
+        rs = [r for r in rows if (r.get("semantic_class") or "?", r["solver"], r["method"]) == (cls, solver, method)
+              and r["relative_rmse"] is not None]
+        if not rs:
+            continue
+        per_object: dict = {}
+        for r in rs:
+            per_object.setdefault(r["object_id"], []).append(r["relative_rmse"])
+        means = {oid: float(np.mean(v)) for oid, v in per_object.items()}
+        worst = max(means, key=means.get)
+        out.append({"semantic_class": cls, "solver": solver, "method": method, "objects": len(means),
+                    "relative_rmse": float(np.mean(list(means.values()))), "worst_object": worst,
+                    "worst_relative_rmse": means[worst]})
+    return out
 
 
 def _summarise_table2(rows: list, renders: list) -> list:

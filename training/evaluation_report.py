@@ -70,6 +70,32 @@ def breakdown_markdown(b: dict, shown: dict | None = None) -> list:
     return L
 
 
+def table2_by_class_markdown(by_class: list, shown: dict) -> list:
+    """Lines of the per-class Table 2 (mean RMSE / size over the class's objects and α) and, per solver, how far
+    the learned heads are from the test-time fits (the ratio of their mean RMSE over the same objects)."""
+    columns = sorted({(x["solver"], x["method"]) for x in by_class})
+    classes = sorted({x["semantic_class"] for x in by_class})
+    cell = {(x["semantic_class"], x["solver"], x["method"]): x for x in by_class}
+    L = ["### Table 2 by class (tracked-point RMSE / object size, mean over the class's objects and α)", "",
+         "| class | objects | " + " | ".join(f"{s} {shown.get(m, m)}" for s, m in columns) + " |",
+         "|---|---|" + "---|" * len(columns)]
+    for c in classes:
+        n = max(cell[(c, s, m)]["objects"] for s, m in columns if (c, s, m) in cell)
+        L.append(f"| {c} | {n} | " + " | ".join(
+            f"{cell[(c, s, m)]['relative_rmse']:.3f}" if (c, s, m) in cell else "–" for s, m in columns) + " |")
+    for solver in sorted({s for s, _ in columns}):
+        fit = [x for x in by_class if x["solver"] == solver and x["method"] == "test_time_fit"]
+        head = [x for x in by_class if x["solver"] == solver and x["method"] == "unipixie"]
+        both = sorted({x["semantic_class"] for x in fit} & {x["semantic_class"] for x in head})
+        if both:
+            f = sum(cell[(c, solver, "test_time_fit")]["relative_rmse"] * cell[(c, solver, "test_time_fit")]["objects"]
+                    for c in both)
+            h = sum(cell[(c, solver, "unipixie")]["relative_rmse"] * cell[(c, solver, "unipixie")]["objects"]
+                    for c in both)
+            L += ["", f"{solver}: the learned head's error is {h / f:.2f}× the test-time fit's (object-weighted)."]
+    return L
+
+
 def report_markdown(r: dict) -> str:
     fm = r.get("model_feature_model") or ", ".join(r.get("feature_model") or [])
     clip_note = "" if r.get("model_is_clip", False) else (" — features from the offline extractor (a seeded, "
@@ -114,6 +140,8 @@ def report_markdown(r: dict) -> str:
             L.append(f"| {row['solver']} | {row['method']} | {row['alpha']:g} | {f(None if row['rmse_m'] is None else 1000 * row['rmse_m'], '.2f')} | "
                      f"{f(row['relative_rmse'], '.3f')} | {f(row['psnr'], '.2f')} | {f(row['ssim'], '.3f')} | "
                      f"{f(row['seconds'], '.2f')} | {row['failed']} |")
+    if r.get("table2_by_class"):
+        L += [""] + table2_by_class_markdown(r["table2_by_class"], shown)
     if r.get("table2_failures"):
         L += ["", "Table 2 objects skipped: " + "; ".join(f"{x['object_id']}: {x['error']}" for x in r["table2_failures"])]
     if r.get("figure"):

@@ -9,6 +9,8 @@ the current Blender session (the command line's bpy module), which the demo then
   surface with material — while UVs and the parts' materials are kept for rendering.
 * :func:`add_ground`, :func:`add_camera`, :func:`add_label`, :func:`duplicate`.
 * :func:`render_frames` — Workbench renders of chosen frames (textures shown), for the contact sheet.
+* :func:`read_bake_scene` — what a bake of a saved demo object simulates, per solver, without baking (for
+  ``unipixie bench demo_plant``).
 """
 
 from __future__ import annotations
@@ -225,3 +227,37 @@ def mesh_volume(obj) -> float:
 
     bo = read_object(obj)
     return float(abs(trimesh.Trimesh(bo.rest_world, bo.triangles, process=False).volume))
+
+
+def read_bake_scene(blend, object_name: str, settings, solvers: Sequence[str]) -> dict:
+    """Open ``blend`` (it replaces the session's file) and return what a bake of ``object_name`` with its recorded
+    prediction would simulate with each of ``solvers``, without baking: ``{"object", "alpha", "size_m", "fps",
+    "times" (T,) s, "scenario", "effects", solver: {"body", "spec" (the resolved material), "settings"}}``.
+    ``settings``: the :class:`~unipixie.core.pipeline.PipelineSettings` the prediction was made with (its model)."""
+    from ..atomic_io import check_blend
+    from ..bake.body import build_body
+    from . import pipeline as pio
+    from .bake import read_object, registered_properties, scenario_from_scene
+
+    blend = Path(blend)
+    if not blend.is_file():
+        raise UserError(f"{blend}: no such .blend file (run 'unipixie demo' first)")
+    check_blend(blend)
+    with quiet_blender_output():
+        bpy.ops.wm.open_mainfile(filepath=str(blend.resolve()))
+    obj = bpy.data.objects.get(object_name)
+    if obj is None:
+        raise UserError(f"{blend}: no object named {object_name!r}")
+    with registered_properties():
+        scene = bpy.context.scene
+        baked = read_object(obj, scene)
+        out = {"object": object_name, "size_m": float(baked.size), "scenario": scenario_from_scene(obj, scene)}
+        for solver in solvers:
+            options = pio.bake_options(obj, scene, solver=solver)
+            options.material = pio.model_source(obj, settings, options.material)
+            body, _ = build_body(baked, solver)
+            resolved = options.material.resolve(baked, options.alpha, solver)
+            out[solver] = {"body": body, "spec": resolved.spec, "settings": dict(resolved.settings)}
+        out.update(alpha=float(options.alpha), times=np.asarray(options.times(), np.float64), fps=float(options.fps),
+                   effects=list(options.effects))
+    return out

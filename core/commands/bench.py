@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 
 NAME = "bench"
-HELP = "run a benchmark (mpm, lbs, spring, features, model, diagnose, bake, fidelity, objects) and record benchmarks/<name>.json"
+HELP = "run a benchmark (mpm, lbs, spring, features, model, diagnose, bake, fidelity, objects, demo_plant) and record benchmarks/<name>.json"
 EXAMPLES = """  unipixie bench mpm --device cpu
   unipixie bench mpm --device cuda --no-record
   unipixie bench model --device cuda"""
@@ -39,6 +39,8 @@ def run(args) -> int:
 
     mod = importlib.import_module((getattr(args, "bench_modules", None) or _benchmarks())[args.bench_name])
     results = mod.run(args)
+    if not results:             # a benchmark that only prepared something (bench demo_plant --export)
+        return 0
     benchmarks.print_table(results)
     if not args.no_record:
         path = benchmarks.record(args.bench_name, results, path=args.out)

@@ -62,6 +62,9 @@ def add_arguments(p):
     b.add_argument("--device", type=_common.device, default="cpu",
                    help="Warp device of the solvers and torch device of the features (cpu, cuda; default cpu)")
     b.add_argument("--retry-failed", action="store_true", help="build objects recorded as failed again")
+    b.add_argument("--only-splits", metavar="NAMES", default=None,
+                   help="build only the objects of these splits among 0..N-1, e.g. 'test' (Table 2's objects with "
+                        "the full ground truth: --count 200 --only-splits test builds the first 20 test objects)")
 
     c = sub.add_parser("card", help="rescan a dataset: write split.json, dataset.json and CARD.md")
     c.add_argument("dir", metavar="DIR")
@@ -122,10 +125,11 @@ def run(args) -> int:
         if importlib.util.find_spec("bpy") is None:
             raise UserError("building a dataset renders with Blender: it needs the 'bpy' module "
                             "(pip install bpy==5.0.1 with Python 3.11)")
-        n = len(dataset.shard_indices(args.count, args.shard))
+        splits = None if args.only_splits is None else tuple(x.strip() for x in args.only_splits.split(",") if x.strip())
+        n = len(dataset.shard_indices(args.count, args.shard, splits, split))
         with Progress(total=n, description=f"dataset {args.shard[0]}/{args.shard[1]}") as progress:
             summary = dataset.build(args.out, args.count, settings, shard=args.shard,
-                                    retry_failed=args.retry_failed, progress=progress)
+                                    retry_failed=args.retry_failed, progress=progress, splits=splits)
         print(f"built {len(summary['built'])}, skipped {len(summary['skipped'])} (already there), failed "
               f"{len(summary['failed'])} in {summary['seconds']:.0f} s; card: {args.out}/CARD.md")
         for oid in summary["failed"]:
