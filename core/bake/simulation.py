@@ -76,6 +76,8 @@ def simulate(obj: BakeObject, scenario, options: BakeOptions, progress: Optional
     progress.set_status(f"simulating {options.frames.count} frames")
     traj = sim.run(options.effects, progress=FrameProgress(progress, options.frames.count - 1),
                    particle_states=bool(options.particles))
+    # the solver's own notes (a coarse grid for thin parts, a class it models as elastic); the body's are above
+    warnings.extend(w for w in getattr(sim, "warnings", []) if w not in body.warnings and w not in warnings)
     check_trajectory(traj, obj.vertex_count, options.frames.count, obj.name)
     weights = None
     if options.solver == "lbs":
