@@ -614,23 +614,35 @@ def _max_displacement(obj, frames: int) -> float:
                      for f in range(2, int(frames) + 1)))
 
 
-def _rms_difference(a, b, frames: int) -> float:
-    """RMS (m, over vertices and frames 2..frames) of the difference between two baked copies' displacements."""
+def displacement_rms(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS (m) of the difference between two motions' displacements from their first frame, over the vertices and
+    frames 2 … T — the demo's ``solver_difference`` (also ``unipixie bench demo_plant``'s).  a, b: (T, N, 3)
+    positions, metres."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim != 3 or len(a) < 2:
+        raise ValueError(f"motions of shapes {a.shape} and {b.shape} cannot be compared")
+    d = (a[1:] - a[0]) - (b[1:] - b[0])
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
+
+
+def _baked_motion(obj, frames: int) -> np.ndarray:
+    """(frames, N, 3) m: a baked copy's evaluated vertex positions at frames 1..frames."""
     from .blender_io.bake import evaluated_positions
 
-    ra, rb = evaluated_positions(a, 1), evaluated_positions(b, 1)
-    sq = [np.mean(np.sum(((evaluated_positions(a, f) - ra) - (evaluated_positions(b, f) - rb)) ** 2, axis=1))
-          for f in range(2, int(frames) + 1)]
-    return float(np.sqrt(np.mean(sq))) if sq else float("nan")
+    return np.stack([evaluated_positions(obj, f) for f in range(1, int(frames) + 1)])
+
+
+def _rms_difference(a, b, frames: int) -> float:
+    """:func:`displacement_rms` of two baked copies over frames 1..frames (NaN with fewer than two frames)."""
+    if int(frames) < 2:
+        return float("nan")
+    return displacement_rms(_baked_motion(a, frames), _baked_motion(b, frames))
 
 
 def _alpha_difference(a, b, frames: int) -> float:
     """Largest difference (m) between two baked copies' displacements from rest over the clip."""
-    from .blender_io.bake import evaluated_positions
-
-    ra, rb = evaluated_positions(a, 1), evaluated_positions(b, 1)
-    return float(max(np.linalg.norm((evaluated_positions(a, f) - ra) - (evaluated_positions(b, f) - rb), axis=1).max()
-                     for f in range(2, int(frames) + 1)))
+    da, db = _baked_motion(a, frames), _baked_motion(b, frames)
+    return float(np.linalg.norm((da[1:] - da[0]) - (db[1:] - db[0]), axis=-1).max())
 
 
 # --------------------------------------------------------------------------- pictures (no Blender)

@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..demo import FULL, PLANT, check_checkpoint, displacement_rms
+
 HELP = ("the demo's plant at one α by MPM and spring-mass at several resolutions: which solver the demo's "
         "MPM-vs-spring-mass difference comes from")
 
@@ -60,16 +62,6 @@ def add_arguments(p):
 
 
 # --------------------------------------------------------------------------- metrics (no solver, no Blender)
-def displacement_rms(a: np.ndarray, b: np.ndarray) -> float:
-    """RMS (m) of the difference between two motions' displacements from their first frame, over the vertices and
-    frames 2 … T.  a, b: (T, N, 3) positions, metres."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    if a.shape != b.shape or a.ndim != 3 or len(a) < 2:
-        raise ValueError(f"motions of shapes {a.shape} and {b.shape} cannot be compared")
-    d = (a[1:] - a[0]) - (b[1:] - b[0])
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
-
-
 def crown_sway(positions: np.ndarray, fps: float, crown: np.ndarray | None = None, windows: int = 4) -> dict:
     """The sway of the crown: its mean horizontal displacement, projected on its main direction of motion.
 
@@ -135,7 +127,6 @@ def export_scene(blend, object_name=None, checkpoint=None) -> dict:
     """The plant's scene from the demo's .blend (needs Blender; the session's file is replaced by it):
     :func:`~unipixie.core.blender_io.demo_scene.read_bake_scene` of the demo's MPM plant at the α of its
     spring-mass plant (or ``object_name``) with the demo's pipeline settings, plus ``"format"``."""
-    from ..demo import FULL, PLANT, check_checkpoint
     from ..pipeline import PipelineSettings
     from ...solvers import registry
     from ..blender_io import demo_scene
