@@ -130,6 +130,23 @@ def test_the_floor_is_what_refinement_moves_beyond_a_different_e(offset):
     assert P.runs <= 2 + len(resolution.REFIT_FACTORS) + resolution.REFIT_PARABOLAS
 
 
+def test_a_skipped_refit_is_said_and_its_floor_is_an_upper_bound(monkeypatch):
+    """When the finer runs are too slow for the E/ρ refit (on a loaded CPU an MPM bar's finer run took 5.7 s, six
+    of them over the 30 s allowed, and the floor came out 21.9 mm where the refit gives 4.7 mm), the verdict says the
+    refit was skipped and that the floor is an upper bound."""
+    monkeypatch.setattr(resolution, "REFIT_BUDGET_S", 0.0)
+    P = _TwoResolutions(0.004)
+    check, _ = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                           remaining_runs=10 ** 6, budget_s=0.0)
+    assert check.finer_E_factor == 1.0 and check.floor == check.floor_before_refit > 0.01
+    assert "refit for the finer model was skipped" in check.verdict and "upper bound" in check.verdict
+    assert P.runs == 2
+    monkeypatch.setattr(resolution, "REFIT_BUDGET_S", 30.0)
+    check, _ = resolution.check_resolution(_TwoResolutions(0.004), lambda scale: [scale], 1.0,
+                                           lambda s: P.fine_sim, sigma=0.0005, remaining_runs=10 ** 6, budget_s=0.0)
+    assert "skipped" not in check.verdict
+
+
 @pytest.mark.slow
 def test_drop_on_a_damped_floor_fits_the_contact_in_the_base(tmp_path):
     """A cube dropped onto a damped, yielding floor (spring-mass made, 48 anchors): the base fit adopts the floor

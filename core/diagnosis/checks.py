@@ -4,15 +4,15 @@
 everything tried) and the share of the reference's above-noise error removed (:mod:`.significance`), and
 states the fitted parameters' uncertainties; :func:`check_leading` refits the leading candidates on the early
 frames (they must not predict the held-out later frames worse than the reference) and re-checks a damping-like
-winner at half the solver's time step (numerical dissipation looks like damping).  May use :mod:`.problem`,
-:mod:`.results`, :mod:`.fit`, :mod:`.significance`, :mod:`.resolution` and the solver interface (to prepare the
-half-step simulation).
+leader at half the solver's time step (numerical dissipation looks like damping), down the ranking until a leader
+passes.  May use :mod:`.problem`, :mod:`.results`, :mod:`.fit`, :mod:`.significance`, :mod:`.resolution` and the
+solver interface (to prepare the half-step simulation).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from . import significance as sig
 from .fit import BASE, FitResult, Parametrisation, levenberg_marquardt, uncertainty
 from .problem import Problem, Reference, param_for
 from .resolution import half_step_settings
-from .results import CandidateResult, json_float
+from .results import CandidateResult, format_params, json_float
 
 DAMPING_LIKE = ("linear_drag", "quadratic_drag", "material_damping")
 """Effects re-checked at half the time step (numerical dissipation looks like them)."""
@@ -60,18 +60,21 @@ def check_leading(P: Problem, ref: Reference, cands: Sequence[CandidateResult], 
                   dt_check: bool, half_step_sim: Callable[[], object], lm_iterations: int, progress: Progress,
                   round_no: int) -> None:
     """The held-out check of the (up to 3) leading significant candidates of ``cands`` (ranked best first), and
-    the half-step check of the best damping-like one (:data:`DAMPING_LIKE`; ``half_step_sim()`` gives the
-    simulation at half the time step); a candidate failing one is no longer significant."""
+    the half-step check of the leader when it is damping-like (:data:`DAMPING_LIKE`; ``half_step_sim()`` gives the
+    simulation at half the time step).  A candidate failing one is no longer significant, and the next significant
+    candidate leads and must pass the same checks (the reference's half-step refit is shared)."""
     leading = [c for c in cands if c.significant][:3]
     holdout_jobs, holdout_finish = (_holdout_jobs(P, ref, leading, sigma, progress) if holdout and leading
                                     else ([], None))
     # side by side, the half-step check of the leading candidate runs with the held-out refits (wasted only
     # when the held-out check rejects that candidate; it is then run again for the new leader below)
     dt_done: dict = {}
+    dt_reference: dict = {}  # the reference refitted at half the step, shared by every candidate re-checked
     ahead = leading[0] if P.parallel and leading and dt_check and leading[0].name in DAMPING_LIKE else None
     dt_jobs, dt_finish = [], None
     if ahead is not None:
-        dt_jobs, dt_finish = _half_step_jobs(P, ref, ahead, sigma, half_step_sim(), lm_iterations, progress)
+        dt_jobs, dt_finish = _half_step_jobs(P, ref, ahead, sigma, half_step_sim(), lm_iterations, progress,
+                                             reference_store=dt_reference)
     if holdout_jobs or dt_jobs:
         progress.set_status(f"round {round_no}: held-out check of {', '.join(c.name for c in leading)}"
                             + (f"; {ahead.name} at half the time step" if ahead is not None else ""))
@@ -87,16 +90,30 @@ def check_leading(P: Problem, ref: Reference, cands: Sequence[CandidateResult], 
     elif holdout_finish is not None:  # too few samples for a held-out window
         for c, check in zip(leading, holdout_finish([])):
             c.holdout = check
+    # a leader that fails a check gives way to the next significant candidate, which must pass the same checks:
+    # numerical dissipation that imitates one damping-like effect imitates the others as well
     top = next((c for c in cands if c.significant), None)
-    if dt_check and top is not None and top.name in DAMPING_LIKE:
-        if top.name not in dt_done:
-            progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
-            jobs, finish = _half_step_jobs(P, ref, top, sigma, half_step_sim(), lm_iterations, progress)
-            dt_done[top.name] = finish(P.side_by_side(jobs))
-        top.dt_check = dt_done[top.name]
-        if top.dt_check.get("ok") is False:
-            top.significant = False
-            top.reasons.append(top.dt_check["verdict"])
+    while top is not None:
+        failed = None
+        if holdout and top.holdout is None:
+            jobs, finish = _holdout_jobs(P, ref, [top], sigma, progress)
+            top.holdout = finish(P.side_by_side(jobs) if jobs else [])[0]
+            if top.holdout.get("ok") is False:
+                failed = top.holdout["verdict"]
+        if failed is None and dt_check and top.name in DAMPING_LIKE:
+            if top.name not in dt_done:
+                progress.set_status(f"round {round_no}: re-checking {top.name} at half the time step")
+                jobs, finish = _half_step_jobs(P, ref, top, sigma, half_step_sim(), lm_iterations, progress,
+                                               reference_fit=dt_reference.get("fit"), reference_store=dt_reference)
+                dt_done[top.name] = finish(P.side_by_side(jobs))
+            top.dt_check = dt_done[top.name]
+            if top.dt_check.get("ok") is False:
+                failed = top.dt_check["verdict"]
+        if failed is None:
+            break
+        top.significant = False
+        top.reasons.append(failed)
+        top = next((c for c in cands if c.significant), None)
 
 
 def _window_residuals(fn: Callable[[list], list], keep: np.ndarray, store: dict) -> Callable[[list], list]:
@@ -174,9 +191,11 @@ def half_step_simulation(P: Problem, settings, measurement, material, body, fram
 
 
 def _half_step_jobs(P: Problem, ref: Reference, c: CandidateResult, sigma: float, sim2, lm_iterations: int,
-                    progress: Progress) -> tuple[list, Callable[[list], dict]]:
+                    progress: Progress, reference_fit: Optional[FitResult] = None,
+                    reference_store: Optional[dict] = None) -> tuple[list, Callable[[list], dict]]:
     """Re-check candidate ``c`` with the simulation ``sim2`` at half the time step: (jobs, finish) — the refits of
-    the reference and of the candidate, and the function that turns their results into the check's verdict."""
+    the reference (unless ``reference_fit`` gives it already) and of the candidate, and the function that turns
+    their results into the check's verdict (it puts the reference's refit in ``reference_store["fit"]``)."""
     if sim2 is None:
         return [], lambda results: {"ok": None, "verdict": "the solver exposes no time-step setting; not re-checked"}
 
@@ -188,14 +207,25 @@ def _half_step_jobs(P: Problem, ref: Reference, c: CandidateResult, sigma: float
         return job
 
     def finish(fits: list) -> dict:
+        if reference_fit is not None:
+            fits = [reference_fit] + list(fits)
+        if reference_store is not None:
+            reference_store["fit"] = fits[0]
         sses = {"reference": P.sse(fits[0].residual), "candidate": P.sse(fits[1].residual)}
         lr = sig.likelihood_ratio(sses["reference"], sses["candidate"], sigma)
         share = sig.share_of_excess(sses["reference"], sses["candidate"], P.n_obs, sigma)
         ok = lr >= c.threshold and share >= sig.MIN_SHARE
-        return {"params_half_step": c.parametrisation.realise(fits[1].u)[1][-1].params_dict(),
+        half = c.parametrisation.realise(fits[1].u)[1][-1]
+        return {"params_half_step": half.params_dict(),
                 "params": c.effect.params_dict(), "likelihood_ratio_half_step": lr, "share_half_step": share,
                 "ok": bool(ok),
                 "verdict": ("the effect is still needed at half the time step" if ok else
-                            "at half the time step the improvement is no longer significant: numerical dissipation")}
+                            f"at half the time step the improvement is no longer significant (it removes "
+                            f"{100 * max(share, 0.0):.0f} % of the above-noise error, {format_params(c.effect)} → "
+                            f"{format_params(half)}): numerical dissipation — the model's own dissipation changes "
+                            f"with the step by as much as the effect")}
 
-    return [refit(param_for(ref, [], {}), None), refit(c.parametrisation, c.fit.u)], finish
+    jobs = [refit(c.parametrisation, c.fit.u)]
+    if reference_fit is None:
+        jobs.insert(0, refit(param_for(ref, [], {}), None))
+    return jobs, finish

@@ -238,7 +238,9 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
     level = noise_rmse(sigma)
     same_E = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     factor = 1.0
-    if level < same_E < math.inf and t_fine * (len(REFIT_FACTORS) + REFIT_PARABOLAS) <= REFIT_BUDGET_S:
+    refit_seconds = t_fine * (len(REFIT_FACTORS) + REFIT_PARABOLAS)
+    refit_skipped = level < same_E < math.inf and refit_seconds > REFIT_BUDGET_S
+    if level < same_E < math.inf and not refit_skipped:
         factor, fine = absorb_base_scale(P, effects_at, scale, coarse, fine, fine_sim, P.obs)
     floor = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
@@ -250,6 +252,9 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
     moved = (f"{1e3 * floor:.2f} mm" if factor == 1.0 else
              f"{1e3 * same_E:.2f} mm at the same E/ρ, {1e3 * floor:.2f} mm with its E/ρ × {factor:.3g} (what the base "
              "fit cannot take up)")
+    if refit_skipped:  # the floor then includes what a refit E/ρ would take up: an upper bound, and machine-dependent
+        moved += (f" at the same E/ρ (its refit for the finer model was skipped: about {refit_seconds:.0f} s of finer "
+                  f"runs, {REFIT_BUDGET_S:.0f} s allowed; this floor is an upper bound)")
     use = None
     if floor <= level:
         check.verdict = (f"the fitted base model moves by {moved} when refined (finer solid and half the time "
