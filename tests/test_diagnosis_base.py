@@ -170,8 +170,22 @@ def test_drop_on_a_damped_floor_fits_the_contact_in_the_base(tmp_path):
     doc = json.loads((tmp_path / "diagnosis.json").read_text())
     assert doc["base_contact"]["adopted"] and doc["resolution"]["checked"] and doc["resolution"]["floor_rmse"] > 0
     assert doc["resolution"]["enforce_floor"] and not doc["resolution"]["used_finer"]
+    caveat = next(w for w in d.warnings if "material damping takes energy from an impact too" in w)
+    assert caveat in doc["warnings"] and "free vibration" in caveat
     html = (tmp_path / "diagnosis.html").read_text()
     assert "Ground contact fitted with E/ρ" in html and "Resolution check" in html
+
+
+def test_the_floor_caveat_is_said_only_when_a_lossy_floor_may_hide_material_damping():
+    from unipixie.core.diagnosis.contact_fit import ContactFit, floor_caveat
+    from unipixie.solvers import effects as fx
+
+    floor = fx.make("contact_damping", c=3.2e4, k=3.4e6)
+    caveat = floor_caveat(ContactFit(effect=floor, adopted=True), ["ground_friction"])
+    assert "c = 3.2e+04 Pa·s/m" in caveat and "not ruled out" in caveat
+    assert floor_caveat(ContactFit(effect=floor, adopted=True), ["material_damping"]) is None  # it was named
+    assert floor_caveat(ContactFit(effect=floor, adopted=False), []) is None  # the rigid floor was kept
+    assert floor_caveat(ContactFit(), []) is None  # no ground contact
 
 
 def test_default_solver_is_the_most_faithful_the_device_affords():

@@ -132,7 +132,37 @@ def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
     assert s.identified == "wind" and (tmp_path / "report" / "diagnosis.html").is_file()
     doc = json.loads((tmp_path / "report" / "diagnosis.json").read_text())
     assert doc["identified"] == "wind"
+    assert s.notes == "\n".join(doc["warnings"])  # the report's warnings reach the panel
     assert bpy.ops.unipixie.add_effect() == {"FINISHED"}
     assert s.effects_on.startswith("wind:acceleration=")
     assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}  # the model now has the wind: the error fell
     assert s.rmse < 0.2 * before
+
+
+def test_the_diagnosis_panel_shows_the_notes_wrapped(blender):
+    """Each of the last diagnosis's warnings is shown under its summary, wrapped to the panel's width (Blender
+    labels do not wrap), with an info icon on its first line."""
+    from types import SimpleNamespace
+
+    from unipixie.unipixie_addon import operators_diagnose as od
+
+    bpy = blender
+    labels = []
+
+    class Layout:
+        def __getattr__(self, name):
+            if name in ("row", "column", "box"):
+                return lambda *a, **k: self
+            return lambda *a, **k: SimpleNamespace()
+
+        def label(self, text="", icon="NONE", **kw):
+            labels.append((text, icon))
+
+    s = bpy.context.scene.unipixie_diagnosis
+    s.summary = "nothing missing: 12.61 → 2.16 mm (noise 1.75 mm)"
+    s.notes = "the energy the ground contact takes is in the fitted floor " * 4 + "\nshort note"
+    od.VIEW3D_PT_unipixie_diagnose.draw(SimpleNamespace(layout=Layout()), bpy.context)
+    notes = labels[labels.index((s.summary, "NONE")) + 1:]
+    assert all(len(t) <= od.NOTE_WIDTH_CHARS for t, _ in notes) and len(notes) >= 5
+    assert [icon for _, icon in notes].count("INFO") == 2 and notes[-1] == ("short note", "INFO")
+    assert " ".join(t for t, _ in notes[:-1]).split() == s.notes.split("\n")[0].split()

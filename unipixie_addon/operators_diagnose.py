@@ -17,6 +17,7 @@ UI only: each operator calls :mod:`unipixie.core.measurement`, :mod:`unipixie.co
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import bpy
@@ -26,6 +27,9 @@ from ..core.errors import UserError
 from ..solvers import effects as _effects
 from .jobs import JobOperator
 from .properties import DEVICE_ITEMS, SOLVER_ITEMS
+
+NOTE_WIDTH_CHARS = 70
+"""Characters per panel line of a diagnosis note (Blender labels do not wrap)."""
 
 ADD_ITEMS = [("AUTO", "Identified", "The best significant effect of the last diagnosis")] + [
     (name, cls.label, cls.law) for name, cls in _effects.EFFECTS.items()]
@@ -56,6 +60,8 @@ class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
     rmse: FloatProperty(name="RMSE (m)", default=0.0, precision=5)
     identified: StringProperty(name="Identified", default="")
     summary: StringProperty(name="Summary", default="")
+    notes: StringProperty(name="Notes", default="",
+                          description="The last diagnosis's warnings and caveats, one per line (also in its report)")
     report_path: StringProperty(name="Report", default="", subtype="FILE_PATH")
 
 
@@ -252,7 +258,10 @@ class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
             what += " (the model still does NOT explain the measurement)"
         s.summary = (f"{what}: {1e3 * result.baseline.rmse:.2f} → "
                      f"{1e3 * result.final.rmse:.2f} mm (noise {1e3 * result.noise_rmse:.2f} mm)")
+        s.notes = "\n".join(result.warnings)
         _colour(s, result.baseline.per_point)
+        for w in result.warnings:  # e.g. a predictive window, the discretisation floor, a lossy floor's caveat
+            self.report({"WARNING"}, w)
         self.report({"INFO"} if explained else {"WARNING"}, s.summary)
         return {"FINISHED"}
 
@@ -340,6 +349,10 @@ class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
         box.operator("unipixie.diagnose", icon="VIEWZOOM")
         if s.summary:
             layout.label(text=s.summary)
+        for note in filter(None, s.notes.split("\n")):
+            col = layout.column(align=True)
+            for i, line in enumerate(textwrap.wrap(note, NOTE_WIDTH_CHARS)):
+                col.label(text=line, icon="INFO" if i == 0 else "BLANK1")
         row = layout.row(align=True)
         row.prop(s, "add_effect", text="")
         row.operator("unipixie.add_effect", icon="ADD")

@@ -114,6 +114,22 @@ class ContactFit:
         return d
 
 
+def floor_caveat(contact: ContactFit, added: list) -> Optional[str]:
+    """The caveat a diagnosis states when its base adopted a lossy floor and did not add material damping: in a drop
+    the two take nearly the same energy from the impact.  On the independent referee a lossy floor without material
+    damping imitated a 0.2 m cube's η = 100 Pa·s drop to within 2.8–3.4 mm (noise level 1.7 mm; docs/diagnosis.md,
+    "The twentieth case…"), which is at or below our solvers' discretisation floors there.  ``added``: the names of
+    the effects the diagnosis added.  ``None`` when the floor was not adopted or material damping was added."""
+    if not contact.adopted or contact.effect is None or "material_damping" in added:
+        return None
+    c = contact.effect.params_dict().get("c")
+    return ("the energy the ground contact takes is in the fitted floor (c = "
+            f"{c:.3g} Pa·s/m in the base fit); material damping takes energy from an impact too and was not named: "
+            "on a drop the two move the solid nearly alike (an independent FEM's lossy floor imitated a cube's "
+            "η = 100 Pa·s to within 3 mm), so a lossy material is not ruled out — a free vibration (a struck or "
+            "clamped solid, or one thrown clear of the ground) tells them apart")
+
+
 def _f(x):
     x = float(x)
     return x if math.isfinite(x) else None

@@ -65,7 +65,7 @@ from .base_fit import base_material_check, find_predictive_window, fit_base
 from .candidates import DEFAULT_REGION_CLUSTERS, Plan, fit_candidates, not_applicable_effects, plan_for
 from .checks import check_leading, half_step_simulation, judge
 from .compare import compare, estimate_noise, noise_rmse
-from .contact_fit import fit_base_contact
+from .contact_fit import fit_base_contact, floor_caveat
 from .fit import BASE_SCALE_BOUNDS, Parametrisation, base_param, e_prior_width
 from .problem import Problem, Reference, max_strain, problem_scales
 from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution, plain_settings
@@ -329,6 +329,11 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         warnings.append(why)
         ref, added = ref_base, []
         del history[1:], history_positions[1:]
+
+    caveat = floor_caveat(contact, [e.name for e in added])  # a lossy floor and a lossy material look alike
+    if caveat is not None:
+        say("   note: " + caveat)
+        warnings.append(caveat)
 
     # ---- 7. base material on its own (base_fit.py) ------------------------------------------------
     progress.set_status("checking the base material")
