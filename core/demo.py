@@ -607,22 +607,25 @@ def _solver_settings(obj, solver: str, alpha: float, plan: DemoPlan, settings, s
 
 def _max_displacement(obj, frames: int) -> float:
     """Largest distance (m) any vertex of the baked object gets from its rest position over the clip."""
-    from .blender_io.bake import evaluated_positions
-
-    rest = evaluated_positions(obj, 1)
-    return float(max(np.linalg.norm(evaluated_positions(obj, f) - rest, axis=1).max()
-                     for f in range(2, int(frames) + 1)))
+    motion = _baked_motion(obj, frames)
+    return float(np.linalg.norm(motion[1:] - motion[0], axis=-1).max())
 
 
 def displacement_rms(a: np.ndarray, b: np.ndarray) -> float:
     """RMS (m) of the difference between two motions' displacements from their first frame, over the vertices and
     frames 2 … T — the demo's ``solver_difference`` (also ``unipixie bench demo_plant``'s).  a, b: (T, N, 3)
     positions, metres."""
+    d = _displacement_difference(a, b)
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
+
+
+def _displacement_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T − 1, N, 3) m: the difference between two motions' displacements from their first frame, frames 2 … T.
+    a, b: (T, N, 3) positions, metres."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     if a.shape != b.shape or a.ndim != 3 or len(a) < 2:
         raise ValueError(f"motions of shapes {a.shape} and {b.shape} cannot be compared")
-    d = (a[1:] - a[0]) - (b[1:] - b[0])
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
+    return (a[1:] - a[0]) - (b[1:] - b[0])
 
 
 def _baked_motion(obj, frames: int) -> np.ndarray:
@@ -641,8 +644,8 @@ def _rms_difference(a, b, frames: int) -> float:
 
 def _alpha_difference(a, b, frames: int) -> float:
     """Largest difference (m) between two baked copies' displacements from rest over the clip."""
-    da, db = _baked_motion(a, frames), _baked_motion(b, frames)
-    return float(np.linalg.norm((da[1:] - da[0]) - (db[1:] - db[0]), axis=-1).max())
+    d = _displacement_difference(_baked_motion(a, frames), _baked_motion(b, frames))
+    return float(np.linalg.norm(d, axis=-1).max())
 
 
 # --------------------------------------------------------------------------- pictures (no Blender)

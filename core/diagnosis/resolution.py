@@ -239,8 +239,9 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
     same_E = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     factor = 1.0
     refit_seconds = t_fine * (len(REFIT_FACTORS) + REFIT_PARABOLAS)
-    refit_skipped = level < same_E < math.inf and refit_seconds > REFIT_BUDGET_S
-    if level < same_E < math.inf and not refit_skipped:
+    needs_refit = level < same_E < math.inf
+    refit_skipped = needs_refit and refit_seconds > REFIT_BUDGET_S
+    if needs_refit and not refit_skipped:
         factor, fine = absorb_base_scale(P, effects_at, scale, coarse, fine, fine_sim, P.obs)
     floor = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
