@@ -208,38 +208,80 @@ def per_voxel_ranges(ann, part_ids: np.ndarray) -> dict:
 def make_training_sample(object_id: str, grid, ann, part_ids: np.ndarray, gt=None, meta: Optional[dict] = None):
     """The :class:`~.sample_format.TrainingSample` of an object (MPM ranges from the annotation; LBS and
     spring-mass targets from the ground truth when given)."""
-    from .sample_format import LBSTargets, MPMRanges, SpringTargets, TrainingSample
+    from .sample_format import MPMRanges, TrainingSample
 
     r = per_voxel_ranges(ann, part_ids)
     mpm = MPMRanges(r["E_min"], r["E_max"], r["nu_min"], r["nu_max"], r["density_min"], r["density_max"], r["material"])
-    lbs = spring = None
-    if gt is not None:
-        e0, e1 = gt.lbs_voxel_E(part_ids)
-        lbs = LBSTargets(gt.lbs_params, e0, e1, r["nu_min"], r["nu_max"])
-        spring = SpringTargets(gt.spring_stiffness[0.0], gt.spring_stiffness[1.0], gt.spring_softness, gt.spring_softness)
+    lbs, spring = solver_targets(gt, part_ids, mpm) if gt is not None else (None, None)
     return TrainingSample(object_id, grid, mpm, lbs, spring, meta or {})
 
 
-def save_ground_truth(path: Path, gt) -> None:
+def solver_targets(gt, part_ids: np.ndarray, mpm):
+    """(LBSTargets, SpringTargets) of a ground truth for the voxels' part ids (K,); ν ranges from ``mpm``
+    (:class:`~.sample_format.MPMRanges`).  ``gt``: a :class:`~.ground_truth.GroundTruth` or
+    :class:`StoredTargets`."""
+    from .sample_format import LBSTargets, SpringTargets
+
+    e0, e1 = gt.lbs_voxel_E(part_ids)
+    lbs = LBSTargets(gt.lbs_params, e0, e1, mpm.nu_min, mpm.nu_max)
+    spring = SpringTargets(gt.spring_stiffness[0.0], gt.spring_stiffness[1.0], gt.spring_softness, gt.spring_softness)
+    return lbs, spring
+
+
+@dataclass
+class StoredTargets:
+    """The training targets read back from a ``ground_truth.npz`` (:func:`load_training_targets`).
+
+    lbs_params: (650,); lbs_part_E: (2, P) Pa, LBS E per part at α = 0 and 1; spring_stiffness: {0.0, 1.0} →
+    (N_a,) N; spring_softness: η.
+    """
+
+    lbs_params: np.ndarray
+    lbs_part_E: np.ndarray
+    spring_stiffness: dict
+    spring_softness: float
+
+    def lbs_voxel_E(self, part_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.lbs_part_E[0][part_ids], self.lbs_part_E[1][part_ids]
+
+
+def load_training_targets(path: Path) -> StoredTargets:
+    """The LBS and spring-mass targets stored in a ``ground_truth.npz`` (written since 2026-11-28 with
+    ``lbs_part_E``)."""
+    with np.load(path, allow_pickle=False) as z:
+        if "lbs_part_E" not in z.files:
+            raise UserError(f"{path}: this ground truth predates the stored per-part LBS E ('lbs_part_E'); "
+                            "rebuild it (unipixie dataset ground-truth)")
+        k = np.asarray(z["spring_stiffness"], np.float64)
+        return StoredTargets(np.asarray(z["lbs_params"], np.float32), np.asarray(z["lbs_part_E"], np.float64),
+                             {0.0: k[0], 1.0: k[1]}, float(z["spring_softness"]))
+
+
+def save_ground_truth(path: Path, gt, keep_trajectories: bool = True, extra: Optional[dict] = None) -> None:
     """Write a :class:`~.ground_truth.GroundTruth` as ``ground_truth.npz``.
 
     Keys: ``frame_times`` (T,) s; ``tracked_index`` (N,) indices into the object's vertices (parts and
     components in order); ``tracked_rest`` (N, 3) m; ``mpm_alphas`` (A,); ``mpm_positions`` (A, T, N, 3) float32 m;
-    ``lbs_params`` (650,); ``lbs_E_scale`` (2,); ``spring_stiffness`` (2, N_a) N; ``spring_softness`` ();
-    ``anchors`` (N_a, 3) m; ``info`` (JSON: MPM info per α, fits, solid sizes).
+    ``lbs_params`` (650,); ``lbs_E_scale`` (2,); ``lbs_part_E`` (2, P) Pa, the LBS E of each part at α = 0, 1;
+    ``spring_stiffness`` (2, N_a) N; ``spring_softness`` (); ``anchors`` (N_a, 3) m; ``info`` (JSON: MPM info
+    per α, fits, solid sizes); ``trajectories_kept`` (bool).  Without ``keep_trajectories`` the tracked
+    points and the MPM motions are left out (the training targets and ``info`` stay).  ``extra``: more keys.
     """
     alphas = sorted(gt.mpm)
-    pos = np.stack([gt.mpm[a].positions for a in alphas]).astype(np.float32)
     info = {"mpm": {str(a): gt.mpm_info[a] for a in alphas}, "fits": gt.fits, "dx": gt.solid.dx,
             "spacing": gt.solid.spacing, "size": gt.solid.size, "wave_speed_cap": gt.solid.wave_speed_cap,
             "particles": int(len(gt.solid.points)), "scenario": gt.solid.scenario.to_dict()}
-    _atomic_savez(path, frame_times=gt.solid.frame_times, tracked_index=gt.solid.tracked_index.astype(np.int64),
-                  tracked_rest=gt.solid.tracked.astype(np.float64), mpm_alphas=np.asarray(alphas, np.float64),
-                  mpm_positions=pos, lbs_params=np.asarray(gt.lbs_params, np.float32),
+    arrays = dict(mpm_alphas=np.asarray(alphas, np.float64), lbs_params=np.asarray(gt.lbs_params, np.float32),
                   lbs_E_scale=np.asarray(gt.lbs_E_scale, np.float64),
+                  lbs_part_E=np.stack(gt.lbs_voxel_E(np.arange(len(gt.solid.simulated_part_E(0.0))))).astype(np.float64),
                   spring_stiffness=np.stack([gt.spring_stiffness[0.0], gt.spring_stiffness[1.0]]).astype(np.float64),
                   spring_softness=np.float64(gt.spring_softness), anchors=np.asarray(gt.anchors, np.float64),
-                  info=json.dumps(info, default=json_default))
+                  info=json.dumps(info, default=json_default), trajectories_kept=np.bool_(keep_trajectories))
+    if keep_trajectories:
+        arrays.update(frame_times=gt.solid.frame_times, tracked_index=gt.solid.tracked_index.astype(np.int64),
+                      tracked_rest=gt.solid.tracked.astype(np.float64),
+                      mpm_positions=np.stack([gt.mpm[a].positions for a in alphas]).astype(np.float32))
+    _atomic_savez(path, **arrays, **(extra or {}))
 
 
 
@@ -522,11 +564,24 @@ def write_card(root) -> dict:
             "feature_model": sorted({r.get("feature_model", "") for r in done}),
             "feature_dim": sorted({r.get("feature_dim", 0) for r in done}),
             "spring_anchors": sorted({r.get("spring_anchors", 0) for r in done}),
+            "ground_truth_settings": _ground_truth_mixture(done),
             "ranges": range_summary, "timings_s": timings, "capped_mass_fraction": capped, "fits": fits,
             "sample_bytes": _stats([r.get("sample_bytes") for r in done]), "settings": settings}
     _atomic_write_text(root / "dataset.json", json.dumps(card, indent=1, default=json_default))
     _atomic_write_text(root / "CARD.md", card_markdown(card))
     return card
+
+
+def _ground_truth_mixture(done: list) -> list:
+    """[{"settings": dict or None (= build.json's), "objects": n}] over the finished records, most frequent first."""
+    counts: dict = {}
+    for r in done:
+        gt = r.get("ground_truth")
+        if gt is not None:
+            gt = {k: v for k, v in gt.items() if k != "extra_alphas"}
+        key = json.dumps(gt, sort_keys=True)
+        counts[key] = counts.get(key, 0) + 1
+    return [{"settings": json.loads(k), "objects": n} for k, n in sorted(counts.items(), key=lambda kv: -kv[1])]
 
 
 def card_markdown(card: dict) -> str:
@@ -548,6 +603,15 @@ def card_markdown(card: dict) -> str:
               f"{gt.get('particles_per_cell_axis')}³ particles per cell, wave speed ≤ {gt.get('wave_speed_per_size')} × size per s, "
               f"{gt.get('tracked_points')} tracked vertices, LBS {gt.get('lbs_cubature_points')} cubature points, "
               f"fits: ≤ {gt.get('fit_evaluations')} simulations per end", ""]
+    mixture = card.get("ground_truth_settings") or []
+    if len(mixture) > 1:
+        L += ["**The objects' ground truth is mixed** (a `dataset ground-truth` rebuild under way):", ""]
+        for m in mixture:
+            g = m["settings"]
+            L.append(f"- {m['objects']} objects: " + ("the build's settings above" if g is None else
+                     f"{g.get('cells_across')} MPM cells across, {g.get('frames')} frames, "
+                     f"{g.get('spring_anchors')} anchors, {g.get('tracked_points')} tracked vertices"))
+        L.append("")
     L += ["## Classes", "", "| class | objects | train | val | test | variants |", "|---|---|---|---|---|---|"]
     for c, v in sorted(card["classes"].items()):
         sp = v["splits"]
@@ -634,15 +698,28 @@ class DatasetDir:
         with np.load(p, allow_pickle=False) as z:
             return z["part_ids"].astype(np.int64), [str(x) for x in z["part_names"]]
 
-    def ground_truth(self, object_id: str) -> dict:
-        """The arrays of ``ground_truth.npz`` (see :func:`save_ground_truth`), ``info`` parsed."""
+    def ground_truth(self, object_id: str, need_motion: bool = False) -> dict:
+        """The arrays of ``ground_truth.npz`` (see :func:`save_ground_truth`), ``info`` parsed.  ``need_motion``:
+        refuse a ground truth whose MPM motions were not kept (a portable rebuild's, for training only)."""
         p = self.root / "objects" / object_id / "ground_truth.npz"
         if not p.is_file():
             raise UserError(f"{self.root}: ground truth of {object_id!r} missing ({p})")
         with np.load(p, allow_pickle=False) as z:
             d = {k: z[k] for k in z.files}
         d["info"] = json.loads(str(d["info"]))
+        if need_motion and "mpm_positions" not in d:
+            raise UserError(f"{p}: this ground truth keeps the fitted targets but not the MPM motions (it was "
+                            f"computed elsewhere without --keep-trajectories); rebuild it here with 'unipixie dataset "
+                            f"ground-truth {self.root}' to compare solvers against it")
         return d
+
+    def ground_truth_settings(self, object_id: str, split: str) -> GroundTruthSettings:
+        """The settings ``object_id``'s ground truth was made with: its record's since a rebuild
+        (:mod:`.ground_truth_rebuild`), else the build's for ``split``."""
+        rec = read_record(self.root, object_id) or {}
+        if rec.get("ground_truth"):
+            return GroundTruthSettings.from_dict(rec["ground_truth"])
+        return self.settings.gt_settings(split) if self.settings else GroundTruthSettings()
 
     def record(self, object_id: str) -> dict:
         rec = read_record(self.root, object_id)

@@ -619,9 +619,9 @@ def _table2_object(ds, oid, sample, preds, alphas, settings: EvalSettings, out: 
     from . import ground_truth as G
 
     obj = ds.object(oid)
-    gt = ds.ground_truth(oid)
+    gt = ds.ground_truth(oid, need_motion=True)
     split = ds.record(oid).get("split", settings.split)
-    gt_settings = ds.settings.gt_settings(split) if ds.settings else G.GroundTruthSettings()
+    gt_settings = ds.ground_truth_settings(oid, split)
     sims = simulate_methods(obj, gt, sample, preds, alphas, gt_settings, settings, progress)
     size = float(gt["info"]["size"])
     gt_alphas = [float(a) for a in gt["mpm_alphas"]]

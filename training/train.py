@@ -281,6 +281,26 @@ def build_config(s: TrainSettings, first_sample, files):
     return cfg
 
 
+def check_spring_anchors(files, expected: int) -> None:
+    """Refuse a training set whose samples' spring targets differ in anchor count from ``expected`` (a dataset
+    whose ground truth is being rebuilt, :mod:`.ground_truth_rebuild`), naming the counts found; reads only the
+    target arrays' headers, not the features."""
+    import numpy as np
+
+    counts: dict = {}
+    for f in files:
+        with np.load(f, allow_pickle=False) as z:
+            if "spring_stiffness_min" in z.files:
+                n = int(z["spring_stiffness_min"].size)
+                counts.setdefault(n, []).append(Path(f).stem)
+    other = {n: ids for n, ids in counts.items() if n != expected}
+    if other:
+        found = "; ".join(f"{len(ids)} with {n} (e.g. {ids[0]})" for n, ids in sorted(other.items()))
+        raise UserError(f"the training samples' spring targets have different anchor counts: the model expects "
+                        f"{expected} spring anchors, {found} — finish the dataset's ground-truth rebuild (unipixie "
+                        "dataset ground-truth) or train on one kind")
+
+
 def _save(out: Path, objective, optimizer, step: int, s: TrainSettings, fingerprint: str, stats: dict) -> None:
     import torch
 
@@ -344,6 +364,7 @@ def train(s: TrainSettings, progress=None) -> dict:
         torch.manual_seed(s.seed)
         model = UniPixieModel(cfg)
     Collate(cfg).check(first, str(files[0]))
+    check_spring_anchors(files, cfg.spring_anchors)
     model.to(dev).train()
     weights = LossWeights(**s.loss)
     sampling = SamplingSettings(**s.sampling)

@@ -1,12 +1,16 @@
-"""``unipixie dataset build|card|pack|unpack``: the procedural training set, its card, and its transfer pack."""
+"""``unipixie dataset build|ground-truth|card|pack|unpack``: the procedural training set, its ground truth, its card,
+and its transfer pack."""
 
 from __future__ import annotations
+
+import json
 
 NAME = "dataset"
 HELP = "build the procedural dataset (sharded, resumable), write its card, pack it for a GPU machine"
 EXAMPLES = """  unipixie dataset build data/pmv --count 500                      # everything, one process
   unipixie dataset build data/pmv --count 500 --shard 0/4          # one of four farm jobs (any scheduler)
   unipixie dataset build data/tiny --count 6 --resolution 16 --views 2 --render-resolution 64 --tiny-ground-truth
+  unipixie dataset ground-truth data/pmv --shard 0/4              # the full ground truth over a tiny-ground-truth build
   unipixie dataset card data/pmv                                   # refresh split.json, dataset.json, CARD.md
   unipixie dataset pack data/pmv packs/pmv --part-mb 50            # compact pack in parts of <= 50 MB
   unipixie dataset unpack packs/pmv data/pmv_samples               # on the GPU machine (torch + numpy only)"""
@@ -46,25 +50,36 @@ def add_arguments(p):
                           "appearance+vit read Cycles' render passes (base colour, roughness, metallic, normal): "
                           "use them with --engine cycles")
     b.add_argument("--split", default="0.8,0.1,0.1", metavar="TRAIN,VAL,TEST", help="split fractions (default 0.8,0.1,0.1)")
-    b.add_argument("--frames", type=_common.positive_int, default=30, help="frames of the ground-truth clip (default 30)")
-    b.add_argument("--fps", type=_common.positive_number, default=60.0, help="frame rate of the clip (default 60)")
-    b.add_argument("--cells-across", type=_common.positive_int, default=12, help="MPM cells across the object (default 12)")
-    b.add_argument("--wave-speed-per-size", type=_common.positive_number, default=400.0, metavar="PER_S",
-                   help="cap on the simulated elastic wave speed, in object sizes per second (default 400)")
-    b.add_argument("--tracked-points", type=_common.non_negative_int, default=1024, help="tracked mesh vertices (default 1024; 0 = all)")
-    b.add_argument("--spring-anchors", type=_common.positive_int, default=256,
-                   help="spring-mass anchors N_a (default 256; train the model with --set spring_anchors=N_a)")
-    b.add_argument("--lbs-cubature", type=_common.positive_int, default=200, help="LBS cubature points (default 200)")
-    b.add_argument("--fit-evaluations", type=_common.positive_int, default=5,
-                   help="simulations per end of each test-time fit (default 5)")
-    b.add_argument("--tiny-ground-truth", action="store_true",
-                   help="tiny ground truth for tests (6 frames, 6 cells, 64 tracked points, 32 anchors, 3 fit simulations)")
+    _add_ground_truth_arguments(b)
     b.add_argument("--device", type=_common.device, default="cpu",
                    help="Warp device of the solvers and torch device of the features (cpu, cuda; default cpu)")
     b.add_argument("--retry-failed", action="store_true", help="build objects recorded as failed again")
     b.add_argument("--only-splits", metavar="NAMES", default=None,
                    help="build only the objects of these splits among 0..N-1, e.g. 'test' (Table 2's objects with "
                         "the full ground truth: --count 200 --only-splits test builds the first 20 test objects)")
+
+    g = sub.add_parser("ground-truth", help="give built objects another ground truth (e.g. the full one over a "
+                                             "--tiny-ground-truth build) without rendering again",
+                       description="Generate each finished object again from the build's seed, simulate and fit it "
+                                   "with these ground-truth settings and replace its ground_truth.npz, its sample's "
+                                   "LBS and spring-mass targets and its record (resumable: objects already at the "
+                                   "target are skipped).  With --portable-out, compute from DIR/build.json alone "
+                                   "into OUT/<object_id>.npz (on another machine); --apply FROM brings such files "
+                                   "into DIR.  build.json takes the new settings once every object has them.")
+    g.add_argument("dir", metavar="DIR", help="built dataset (with --portable-out: a folder with its build.json)")
+    g.add_argument("--shard", type=_common.shard, default=(0, 1), metavar="i/n",
+                   help="only objects with index ≡ i (mod n) (default 0/1 = all)")
+    g.add_argument("--splits", metavar="NAMES", default=None, help="only these splits, e.g. 'train,val' (default all)")
+    _add_ground_truth_arguments(g)
+    g.add_argument("--device", type=_common.device, default="cpu", help="Warp device of the solvers (default cpu)")
+    mode = g.add_mutually_exclusive_group()
+    mode.add_argument("--portable-out", metavar="OUT", help="compute objects 0..--count-1 into OUT/<object_id>.npz "
+                                                            "from DIR/build.json alone (no dataset needed)")
+    mode.add_argument("--apply", metavar="FROM", help="apply the files a --portable-out run wrote to DIR's objects")
+    g.add_argument("--count", type=_common.positive_int, metavar="N", help="objects in the whole dataset (--portable-out)")
+    g.add_argument("--keep-trajectories", action="store_true",
+                   help="with --portable-out: keep the MPM motions in the files (0.3–0.7 MB an object instead of "
+                        "about 20 kB; the evaluation's Table 2 needs them)")
 
     c = sub.add_parser("card", help="rescan a dataset: write split.json, dataset.json and CARD.md")
     c.add_argument("dir", metavar="DIR")
@@ -78,6 +93,25 @@ def add_arguments(p):
     u = sub.add_parser("unpack", help="turn a pack back into training samples (needs only torch and numpy)")
     u.add_argument("pack", metavar="PACK")
     u.add_argument("out", metavar="OUT", help="directory for samples/*.npz and split.json")
+
+
+def _add_ground_truth_arguments(p):
+    """The ground-truth settings (shared by ``build`` and ``ground-truth``)."""
+    from ...core.commands import _common
+
+    p.add_argument("--frames", type=_common.positive_int, default=30, help="frames of the ground-truth clip (default 30)")
+    p.add_argument("--fps", type=_common.positive_number, default=60.0, help="frame rate of the clip (default 60)")
+    p.add_argument("--cells-across", type=_common.positive_int, default=12, help="MPM cells across the object (default 12)")
+    p.add_argument("--wave-speed-per-size", type=_common.positive_number, default=400.0, metavar="PER_S",
+                   help="cap on the simulated elastic wave speed, in object sizes per second (default 400)")
+    p.add_argument("--tracked-points", type=_common.non_negative_int, default=1024, help="tracked mesh vertices (default 1024; 0 = all)")
+    p.add_argument("--spring-anchors", type=_common.positive_int, default=256,
+                   help="spring-mass anchors N_a (default 256; train the model with --set spring_anchors=N_a)")
+    p.add_argument("--lbs-cubature", type=_common.positive_int, default=200, help="LBS cubature points (default 200)")
+    p.add_argument("--fit-evaluations", type=_common.positive_int, default=5,
+                   help="simulations per end of each test-time fit (default 5)")
+    p.add_argument("--tiny-ground-truth", action="store_true",
+                   help="tiny ground truth for tests (6 frames, 6 cells, 64 tracked points, 32 anchors, 3 fit simulations)")
 
 
 def _gt_settings(args):
@@ -134,6 +168,47 @@ def run(args) -> int:
               f"{len(summary['failed'])} in {summary['seconds']:.0f} s; card: {args.out}/CARD.md")
         for oid in summary["failed"]:
             print(f"  failed: {oid} (see {args.out}/objects/{oid}/record.json)")
+        return 1 if summary["failed"] else 0
+    if action == "ground-truth":
+        from .. import ground_truth_rebuild as rebuild
+        from ...core.progress import Progress
+        from pathlib import Path
+
+        target = _gt_settings(args)
+        splits = None if args.splits is None else tuple(x.strip() for x in args.splits.split(",") if x.strip())
+        if args.apply:
+            with Progress(description="applying ground truth") as progress:
+                summary = rebuild.apply_portable(args.dir, args.apply, progress=progress)
+            print(f"applied {len(summary['applied'])} ground truths to {args.dir}"
+                  + (f"; {len(summary['unknown'])} files name no finished object: {', '.join(summary['unknown'][:5])}"
+                     if summary["unknown"] else "")
+                  + ("; build.json now names these settings" if summary["promoted"] else
+                     "; build.json keeps its settings until every object has the new ones"))
+            return 1 if summary["unknown"] else 0
+        if args.portable_out:
+            if args.count is None:
+                raise UserError("--portable-out needs --count N (objects in the whole dataset)")
+            from .. import dataset
+
+            build = Path(args.dir) / "build.json"
+            if not build.is_file():
+                raise UserError(f"{args.dir}: no build.json to generate the objects from")
+            n = len(dataset.shard_indices(args.count, args.shard, splits,
+                                          dataset.BuildSettings.from_dict(json.loads(build.read_text())).split))
+            with Progress(total=n, description=f"ground truth {args.shard[0]}/{args.shard[1]}") as progress:
+                summary = rebuild.compute_portable(build, args.portable_out, args.count, target, shard=args.shard,
+                                                   splits=splits, keep_trajectories=args.keep_trajectories,
+                                                   progress=progress)
+            print(f"computed {len(summary['written'])}, skipped {len(summary['skipped'])} (already there), failed "
+                  f"{len(summary['failed'])} in {summary['seconds']:.0f} s into {args.portable_out}")
+        else:
+            with Progress(description=f"ground truth {args.shard[0]}/{args.shard[1]}") as progress:
+                summary = rebuild.rebuild(args.dir, target, shard=args.shard, splits=splits, progress=progress)
+            print(f"rebuilt {len(summary['rebuilt'])}, skipped {len(summary['skipped'])} (already at these settings), "
+                  f"failed {len(summary['failed'])} in {summary['seconds']:.0f} s"
+                  + ("; build.json now names these settings" if summary["promoted"] else ""))
+        for oid, err in summary["failed"].items():
+            print(f"  failed: {oid}: {err}")
         return 1 if summary["failed"] else 0
     if action == "card":
         from .. import dataset
