@@ -284,7 +284,7 @@ def build_config(s: TrainSettings, first_sample, files):
 def check_spring_anchors(files, expected: int) -> None:
     """Refuse a training set whose samples' spring targets differ in anchor count from ``expected`` (a dataset
     whose ground truth is being rebuilt, :mod:`.ground_truth_rebuild`), naming the counts found; reads only the
-    target arrays' headers, not the features."""
+    spring target arrays, not the features."""
     import numpy as np
 
     counts: dict = {}
