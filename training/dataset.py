@@ -273,7 +273,7 @@ def save_ground_truth(path: Path, gt, keep_trajectories: bool = True, extra: Opt
             "particles": int(len(gt.solid.points)), "scenario": gt.solid.scenario.to_dict()}
     arrays = dict(mpm_alphas=np.asarray(alphas, np.float64), lbs_params=np.asarray(gt.lbs_params, np.float32),
                   lbs_E_scale=np.asarray(gt.lbs_E_scale, np.float64),
-                  lbs_part_E=np.stack(gt.lbs_voxel_E(np.arange(len(gt.solid.simulated_part_E(0.0))))).astype(np.float64),
+                  lbs_part_E=gt.lbs_part_E().astype(np.float64),
                   spring_stiffness=np.stack([gt.spring_stiffness[0.0], gt.spring_stiffness[1.0]]).astype(np.float64),
                   spring_softness=np.float64(gt.spring_softness), anchors=np.asarray(gt.anchors, np.float64),
                   info=json.dumps(info, default=json_default), trajectories_kept=np.bool_(keep_trajectories))
@@ -564,7 +564,7 @@ def write_card(root) -> dict:
             "feature_model": sorted({r.get("feature_model", "") for r in done}),
             "feature_dim": sorted({r.get("feature_dim", 0) for r in done}),
             "spring_anchors": sorted({r.get("spring_anchors", 0) for r in done}),
-            "ground_truth_settings": _ground_truth_mixture(done),
+            "ground_truth_settings": ground_truth_mixture(done),
             "ranges": range_summary, "timings_s": timings, "capped_mass_fraction": capped, "fits": fits,
             "sample_bytes": _stats([r.get("sample_bytes") for r in done]), "settings": settings}
     _atomic_write_text(root / "dataset.json", json.dumps(card, indent=1, default=json_default))
@@ -572,7 +572,7 @@ def write_card(root) -> dict:
     return card
 
 
-def _ground_truth_mixture(done: list) -> list:
+def ground_truth_mixture(done: list) -> list:
     """[{"settings": dict or None (= build.json's), "objects": n}] over the finished records, most frequent first."""
     counts: dict = {}
     for r in done:

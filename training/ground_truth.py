@@ -470,9 +470,14 @@ class GroundTruth:
     anchors: np.ndarray
     fits: dict
 
+    def lbs_part_E(self) -> np.ndarray:
+        """(2, parts) Pa: the LBS E of each part at α = 0 and α = 1 (simulated E × fitted scale)."""
+        return np.stack([self.solid.simulated_part_E(end) * s for end, s in zip((0.0, 1.0), self.lbs_E_scale)])
+
     def lbs_voxel_E(self, part_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K,) LBS E at α = 0 and α = 1 for voxels of the given part ids (simulated E × fitted scale, Pa)."""
-        return tuple(self.solid.simulated_part_E(end)[part_ids] * s for end, s in zip((0.0, 1.0), self.lbs_E_scale))
+        """(K,) LBS E at α = 0 and α = 1 for voxels of the given part ids (Pa)."""
+        e = self.lbs_part_E()
+        return e[0][part_ids], e[1][part_ids]
 
 
 def compute(obj, settings: GroundTruthSettings | None = None, progress: Optional[Progress] = None,

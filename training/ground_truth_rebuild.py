@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterable, Optional
 
@@ -69,14 +70,15 @@ def _regenerate(build: ds.BuildSettings, index: int, expected_id: Optional[str] 
 
 def compute_object(build: ds.BuildSettings, index: int, target: GroundTruthSettings,
                    expected_id: Optional[str] = None, progress: Optional[Progress] = None):
-    """Generate object ``index`` again and compute its ground truth; returns (object, GroundTruth, timings s)."""
+    """Generate object ``index`` again and compute its ground truth; returns (GroundTruth, the settings it was
+    computed with (:func:`object_settings`), timings s)."""
     from . import ground_truth
 
     obj = _regenerate(build, index, expected_id)
-    split = ds.split_of(index, build.split)
+    settings = object_settings(build, target, ds.split_of(index, build.split))
     timings: dict = {}
-    gt = ground_truth.compute(obj, object_settings(build, target, split), progress=progress, timings=timings)
-    return obj, gt, timings
+    gt = ground_truth.compute(obj, settings, progress=progress, timings=timings)
+    return gt, settings, timings
 
 
 def record_update(gt, settings: GroundTruthSettings, timings: dict) -> dict:
@@ -87,10 +89,8 @@ def record_update(gt, settings: GroundTruthSettings, timings: dict) -> dict:
 
 
 def _apply_record(root: Path, rec: dict, update: dict) -> dict:
-    rec = dict(rec)
-    gt_timings = update.pop("gt_timings")
-    rec.update(update)
-    rec["timings"] = {**rec.get("timings", {}), **gt_timings}
+    rec = {**rec, **{k: v for k, v in update.items() if k != "gt_timings"}}
+    rec["timings"] = {**rec.get("timings", {}), **update["gt_timings"]}
     rec["total_seconds"] = float(sum(rec["timings"].values()))
     rec["sample_bytes"] = (root / "samples" / f"{rec['object_id']}.npz").stat().st_size
     write_text(root / "objects" / rec["object_id"] / "record.json", json.dumps(rec, indent=1, default=json_default))
@@ -134,14 +134,20 @@ def _at_target(rec: dict, build: ds.BuildSettings, target: GroundTruthSettings) 
     return rec.get("ground_truth") == want
 
 
-def _promote_if_complete(root: Path, build: ds.BuildSettings, target: GroundTruthSettings) -> bool:
-    """Write the target into build.json once every finished object carries it; returns whether it did."""
+def _promote_if_uniform(root: Path) -> bool:
+    """Write the finished objects' ground-truth settings into build.json once they all share them (a test
+    object's extra α aside; :func:`~.dataset.ground_truth_mixture`); returns whether it did."""
     records = _finished(root)
-    if not records or not all(_at_target(r, build, target) for r in records):
+    mixture = ds.ground_truth_mixture(records)
+    if len(mixture) != 1 or mixture[0]["settings"] is None:
         return False
-    d = json.loads((root / "build.json").read_text())
-    d["ground_truth"] = target.to_dict()
-    write_text(root / "build.json", json.dumps(d, indent=1))
+    path = root / "build.json"
+    d = read_json(path)
+    alphas = next((r["ground_truth"]["extra_alphas"] for r in records if r.get("split") != "test"), [])
+    device = d.get("ground_truth", {}).get("device", "cpu")
+    d["ground_truth"] = GroundTruthSettings.from_dict({**mixture[0]["settings"], "extra_alphas": alphas,
+                                                      "device": device}).to_dict()
+    write_text(path, json.dumps(d, indent=1))
     return True
 
 
@@ -151,6 +157,16 @@ def _build_settings(root: Path) -> ds.BuildSettings:
         raise UserError(f"{root}: no build.json — a ground-truth rebuild needs the build's settings (seed, classes, "
                         "split) to generate its objects again")
     return ds.BuildSettings.from_dict(read_json(p))
+
+
+@contextmanager
+def _progress_for(given: Optional[Progress], total: int, description: str):
+    """``given``, or a new :class:`Progress` of ``total`` steps (one an object), closed at the end."""
+    if given is not None:
+        yield given
+        return
+    with Progress(total=total, description=description) as own:
+        yield own
 
 
 def _attempt(object_id: str, work: Callable[[], float], summary: dict, done_key: str, failure_note: str = "") -> str:
@@ -187,28 +203,27 @@ def rebuild(root, target: GroundTruthSettings, shard: tuple[int, int] = (0, 1), 
     if not todo:
         raise UserError(f"{root}: no finished objects in shard {shard[0]}/{shard[1]}"
                         + (f" of the splits {', '.join(splits)}" if splits else ""))
-    progress = progress or Progress(total=len(todo), description=f"ground truth {shard[0]}/{shard[1]}")
-    summary = {"rebuilt": [], "skipped": [], "failed": {}, "seconds": 0.0}
-    t0 = time.perf_counter()
-    for rec in todo:
-        oid = rec["object_id"]
-        if _at_target(rec, build, target):
-            summary["skipped"].append(oid)
-            progress.step(1.0, f"{oid} already at the target")
-            continue
+    with _progress_for(progress, len(todo), f"ground truth {shard[0]}/{shard[1]}") as progress:
+        summary = {"rebuilt": [], "skipped": [], "failed": {}, "seconds": 0.0}
+        t0 = time.perf_counter()
+        for rec in todo:
+            oid = rec["object_id"]
+            if _at_target(rec, build, target):
+                summary["skipped"].append(oid)
+                progress.step(1.0, f"{oid} already at the target")
+                continue
 
-        def work(rec=rec, oid=oid):
-            _, gt, timings = compute_object(build, rec["index"], target, oid, progress)
-            gt_path = root / "objects" / oid / "ground_truth.npz"
-            ds.save_ground_truth(gt_path, gt)
-            _replace_targets(root, oid, ds.load_training_targets(gt_path))
-            settings = object_settings(build, target, rec.get("split", "train"))
-            _apply_record(root, rec, record_update(gt, settings, timings))
-            return sum(timings.values())
+            def work(rec=rec, oid=oid):
+                gt, settings, timings = compute_object(build, rec["index"], target, oid, progress)
+                gt_path = root / "objects" / oid / "ground_truth.npz"
+                ds.save_ground_truth(gt_path, gt)
+                _replace_targets(root, oid, ds.load_training_targets(gt_path))
+                _apply_record(root, rec, record_update(gt, settings, timings))
+                return sum(timings.values())
 
-        _report(_attempt(oid, work, summary, "rebuilt", " (keeps its previous ground truth)"), progress, log)
+            _report(_attempt(oid, work, summary, "rebuilt", " (keeps its previous ground truth)"), progress, log)
     summary["seconds"] = time.perf_counter() - t0
-    summary["promoted"] = _promote_if_complete(root, build, target)
+    summary["promoted"] = _promote_if_uniform(root)
     ds.write_card(root)
     return summary
 
@@ -222,82 +237,72 @@ def compute_portable(build_json, out, count: int, target: GroundTruthSettings, s
     there are skipped.  Returns ``written``, ``skipped``, ``failed`` (id → error), ``seconds``."""
     from ..core import procedural
 
-    build = ds.BuildSettings.from_dict(read_json(Path(build_json)))
+    build_json = Path(build_json)
+    if not build_json.is_file():
+        raise UserError(f"{build_json}: not found — a portable ground truth generates the objects from the build's "
+                        "settings (copy the dataset's build.json)")
+    build = ds.BuildSettings.from_dict(read_json(build_json))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     indices = ds.shard_indices(count, shard, splits, build.split)
-    progress = progress or Progress(total=len(indices), description=f"ground truth {shard[0]}/{shard[1]}")
-    summary = {"written": [], "skipped": [], "failed": {}, "seconds": 0.0}
-    t0 = time.perf_counter()
-    for index in indices:
-        oid = procedural.object_id(index, procedural.class_of_index(index, build.classes))
-        path = out / f"{oid}.npz"
-        if path.is_file():
-            summary["skipped"].append(oid)
-            progress.step(1.0, f"{oid} already computed")
-            continue
+    with _progress_for(progress, len(indices), f"ground truth {shard[0]}/{shard[1]}") as progress:
+        summary = {"written": [], "skipped": [], "failed": {}, "seconds": 0.0}
+        t0 = time.perf_counter()
+        for index in indices:
+            oid = procedural.object_id(index, procedural.class_of_index(index, build.classes))
+            path = out / f"{oid}.npz"
+            if path.is_file():
+                summary["skipped"].append(oid)
+                progress.step(1.0, f"{oid} already computed")
+                continue
 
-        def work(index=index, oid=oid, path=path):
-            _, gt, timings = compute_object(build, index, target, oid, progress)
-            settings = object_settings(build, target, ds.split_of(index, build.split))
-            update = record_update(gt, settings, timings)
-            ds.save_ground_truth(path, gt, keep_trajectories=keep_trajectories,
-                                 extra={"index": np.int64(index), "record": json.dumps(update, default=json_default)})
-            return sum(timings.values())
+            def work(index=index, oid=oid, path=path):
+                gt, settings, timings = compute_object(build, index, target, oid, progress)
+                update = record_update(gt, settings, timings)
+                ds.save_ground_truth(path, gt, keep_trajectories=keep_trajectories,
+                                     extra={"index": np.int64(index), "record": json.dumps(update, default=json_default)})
+                return sum(timings.values())
 
-        _report(_attempt(oid, work, summary, "written"), progress, log)
+            _report(_attempt(oid, work, summary, "written"), progress, log)
     summary["seconds"] = time.perf_counter() - t0
     return summary
 
 
-def apply_portable(root, source, target: Optional[GroundTruthSettings] = None,
-                   progress: Optional[Progress] = None) -> dict:
+def apply_portable(root, source, progress: Optional[Progress] = None) -> dict:
     """Apply the portable files in ``source`` (``<object_id>.npz``) to ``root``'s finished objects.
 
     Each file must belong to a finished object of ``root`` (same id and index); the object's
     ``ground_truth.npz`` becomes the file (without its ``record`` / ``index`` keys), its sample's targets and
-    its record are replaced.  ``target``: promote build.json when every object carries it (default: the
-    settings the files carry, when they all agree).  Returns ``applied``, ``unknown`` (files of no finished
-    object), ``promoted``.
+    its record are replaced; build.json takes the settings once every object shares them.  Returns ``applied``,
+    ``unknown`` (files of no finished object), ``promoted``.
     """
     root, source = Path(root), Path(source)
-    build = _build_settings(root)
+    _build_settings(root)  # a build's directory (its build.json takes the new settings)
     files = sorted(source.glob("*.npz"))
     if not files:
         raise UserError(f"{source}: no ground-truth files (<object_id>.npz) to apply")
     records = {r["object_id"]: r for r in _finished(root)}
-    progress = progress or Progress(total=len(files), description="applying ground truth")
-    summary = {"applied": [], "unknown": [], "promoted": False}
-    carried = []
-    for f in files:
-        oid = f.stem
-        rec = records.get(oid)
-        if rec is None:
-            summary["unknown"].append(oid)
-            progress.step(1.0, f"{oid}: no finished object of that id in {root}")
-            continue
-        with np.load(f, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-        index = int(arrays.pop("index"))
-        if index != int(rec["index"]):
-            raise UserError(f"{f}: made for object index {index}, {oid} is index {rec['index']} in {root}")
-        update = json.loads(str(arrays.pop("record")))
-        carried.append(json.dumps(_without_alphas(update["ground_truth"]), sort_keys=True))
-        gt_path = root / "objects" / oid / "ground_truth.npz"
-        save_npz(gt_path, **arrays)
-        _replace_targets(root, oid, ds.load_training_targets(gt_path))
-        _apply_record(root, rec, update)
-        summary["applied"].append(oid)
-        progress.step(1.0, f"{oid} applied")
-    if target is None and carried and len(set(carried)) == 1:
-        target = GroundTruthSettings.from_dict({**json.loads(carried[0]), "device": "cpu"})
-    if target is not None:
-        summary["promoted"] = _promote_if_complete(root, build, target)
+    with _progress_for(progress, len(files), "applying ground truth") as progress:
+        summary = {"applied": [], "unknown": [], "promoted": False}
+        for f in files:
+            oid = f.stem
+            rec = records.get(oid)
+            if rec is None:
+                summary["unknown"].append(oid)
+                progress.step(1.0, f"{oid}: no finished object of that id in {root}")
+                continue
+            with np.load(f, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            index = int(arrays.pop("index"))
+            if index != int(rec["index"]):
+                raise UserError(f"{f}: made for object index {index}, {oid} is index {rec['index']} in {root}")
+            update = json.loads(str(arrays.pop("record")))
+            gt_path = root / "objects" / oid / "ground_truth.npz"
+            save_npz(gt_path, **arrays)
+            _replace_targets(root, oid, ds.load_training_targets(gt_path))
+            _apply_record(root, rec, update)
+            summary["applied"].append(oid)
+            progress.step(1.0, f"{oid} applied")
+    summary["promoted"] = _promote_if_uniform(root)
     ds.write_card(root)
     return summary
-
-
-def _without_alphas(key: dict) -> dict:
-    d = dict(key)
-    d["extra_alphas"] = []
-    return d

@@ -3,8 +3,6 @@ and its transfer pack."""
 
 from __future__ import annotations
 
-import json
-
 NAME = "dataset"
 HELP = "build the procedural dataset (sharded, resumable), write its card, pack it for a GPU machine"
 EXAMPLES = """  unipixie dataset build data/pmv --count 500                      # everything, one process
@@ -171,14 +169,10 @@ def run(args) -> int:
         return 1 if summary["failed"] else 0
     if action == "ground-truth":
         from .. import ground_truth_rebuild as rebuild
-        from ...core.progress import Progress
-        from pathlib import Path
 
-        target = _gt_settings(args)
         splits = None if args.splits is None else tuple(x.strip() for x in args.splits.split(",") if x.strip())
         if args.apply:
-            with Progress(description="applying ground truth") as progress:
-                summary = rebuild.apply_portable(args.dir, args.apply, progress=progress)
+            summary = rebuild.apply_portable(args.dir, args.apply)
             print(f"applied {len(summary['applied'])} ground truths to {args.dir}"
                   + (f"; {len(summary['unknown'])} files name no finished object: {', '.join(summary['unknown'][:5])}"
                      if summary["unknown"] else "")
@@ -188,22 +182,13 @@ def run(args) -> int:
         if args.portable_out:
             if args.count is None:
                 raise UserError("--portable-out needs --count N (objects in the whole dataset)")
-            from .. import dataset
-
-            build = Path(args.dir) / "build.json"
-            if not build.is_file():
-                raise UserError(f"{args.dir}: no build.json to generate the objects from")
-            n = len(dataset.shard_indices(args.count, args.shard, splits,
-                                          dataset.BuildSettings.from_dict(json.loads(build.read_text())).split))
-            with Progress(total=n, description=f"ground truth {args.shard[0]}/{args.shard[1]}") as progress:
-                summary = rebuild.compute_portable(build, args.portable_out, args.count, target, shard=args.shard,
-                                                   splits=splits, keep_trajectories=args.keep_trajectories,
-                                                   progress=progress)
+            summary = rebuild.compute_portable(f"{args.dir}/build.json", args.portable_out, args.count,
+                                               _gt_settings(args), shard=args.shard, splits=splits,
+                                               keep_trajectories=args.keep_trajectories)
             print(f"computed {len(summary['written'])}, skipped {len(summary['skipped'])} (already there), failed "
                   f"{len(summary['failed'])} in {summary['seconds']:.0f} s into {args.portable_out}")
         else:
-            with Progress(description=f"ground truth {args.shard[0]}/{args.shard[1]}") as progress:
-                summary = rebuild.rebuild(args.dir, target, shard=args.shard, splits=splits, progress=progress)
+            summary = rebuild.rebuild(args.dir, _gt_settings(args), shard=args.shard, splits=splits)
             print(f"rebuilt {len(summary['rebuilt'])}, skipped {len(summary['skipped'])} (already at these settings), "
                   f"failed {len(summary['failed'])} in {summary['seconds']:.0f} s"
                   + ("; build.json now names these settings" if summary["promoted"] else ""))
