@@ -173,10 +173,10 @@ class SpringMassSimulation(Simulation):
         self.softness = settings.softness
         self.spring_weight = softness_weights(net.rank, settings.neighbours, settings.fixed_springs, settings.softness)
         if settings.stiffness is not None:
-            if len(settings.stiffness) != n:
-                raise UserError(f"the explicit stiffness vector has {len(settings.stiffness)} entries but the solid "
-                                f"has {n} anchors (settings.anchors = {settings.anchors}); give one per anchor")
-            self.stiffness = settings.stiffness.copy()
+            self.stiffness = explicit_stiffness_for(settings.stiffness, n, settings.anchors)
+            if len(self.stiffness) < len(settings.stiffness):
+                self.warnings.append(f"the solid takes {n} of the {settings.anchors} anchors asked (too small or thin "
+                                     f"for more); the explicit stiffness's first {n} entries are used")
             self.youngs_modulus = youngs_modulus_from_stiffness(net, self.stiffness, settings)
         else:
             self.stiffness = stiffness_from_youngs_modulus(net, net.E, settings)
@@ -719,6 +719,21 @@ def prepare_with_parameters(body: Body, stiffness: np.ndarray, softness: float, 
     fields_.update(stiffness=k, softness=softness, anchors=len(k))
     return prepare(body, material, scenario, frame_times, device=device, settings=SpringMassSettings(**fields_),
                    progress=progress)
+
+
+def explicit_stiffness_for(stiffness: np.ndarray, anchor_count: int, anchors_asked: int) -> np.ndarray:
+    """The explicit per-anchor stiffness (N,) newtons for a network of ``anchor_count`` anchors, from ``stiffness``
+    (one entry per anchor asked, FPS order).  A solid too small or thin for the ``anchors_asked`` anchors takes fewer
+    (:func:`.spring_mass_network.select_anchors`): it uses the first ``anchor_count`` entries, the ones the spring
+    head was trained on for such a solid (its ground truth has that many, :mod:`unipixie.training.train` masks the
+    rest).  Any other length is a UserError."""
+    k = np.asarray(stiffness, dtype=np.float64).reshape(-1)
+    if len(k) == anchor_count:
+        return k.copy()
+    if len(k) == int(anchors_asked) > anchor_count:
+        return k[:anchor_count].copy()
+    raise UserError(f"the explicit stiffness vector has {len(k)} entries but the solid has {anchor_count} anchors "
+                    f"(settings.anchors = {anchors_asked}); give one per anchor")
 
 
 def split_parameter_vector(vector: np.ndarray) -> tuple[np.ndarray, float]:

@@ -126,6 +126,8 @@ def test_pack_round_trip(built, tmp_path):
     assert idx["count"] == COUNT and idx["bytes"] <= idx["count"] * 200_000
     n = pack.unpack(tmp_path / "pack", tmp_path / "unpacked")
     assert n == COUNT
+    # the card goes with the samples: training reads it (a ground truth being rebuilt is refused)
+    assert json.loads((tmp_path / "unpacked" / "dataset.json").read_text()) == json.loads((built / "dataset.json").read_text())
     assert json.loads((tmp_path / "unpacked" / "split.json").read_text()) == \
         {k: v for k, v in json.loads((built / "split.json").read_text()).items() if v}
     for f in sorted((built / "samples").glob("*.npz")):

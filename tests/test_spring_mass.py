@@ -386,3 +386,27 @@ def test_velocity_kick_reads_the_velocities_from_before_the_kick():
     assert np.allclose(v.numpy(), v0)  # the input is left alone
     assert abs(out[0, 0]) < 1.0 and abs(out[1, 0]) < 1.0  # the dashpot slowed both down
     assert abs(out[0, 0] + out[1, 0]) < 1e-6  # ... by the same amount
+
+
+def test_a_solid_with_fewer_anchors_than_asked_takes_the_first_stiffnesses():
+    """The spring head predicts N_a stiffnesses; a solid whose free part is too small for them (a plant on its
+    pot) gets fewer anchors — the same network its ground truth was fitted on — and uses the first entries, saying
+    so; any other length is refused."""
+    from unipixie.solvers.body import Body
+
+    g = np.arange(10) * 0.01  # a clamped 10 x 10 x 5 block of points, a free stick of 30 standing on it
+    block = np.stack(np.meshgrid(g, g, g[:5], indexing="ij"), -1).reshape(-1, 3)
+    stick = np.stack([np.full(30, 0.045), np.full(30, 0.045), 0.05 + 0.01 * np.arange(30)], 1)
+    body = Body(points=np.concatenate([block, stick]), point_volume=1e-6)
+    sc = Scenario(ground_height=None, pinned_box=[[-1, -1, -1], [1, 1, 0.045]])
+    t = np.linspace(0.0, 0.02, 3)
+    asked = sm.prepare(body, JELLY, sc, t, settings={"anchors": 200})
+    n = asked.network.count
+    assert 4 < n < 200
+    k = np.concatenate([asked.stiffness, np.full(200 - n, 1e9)])
+    sim = sm.prepare_with_parameters(body, k, sm.DEFAULT_SOFTNESS, JELLY, sc, t)
+    assert sim.network.count == n and np.array_equal(sim.stiffness, asked.stiffness)
+    assert any(f"takes {n} of the 200 anchors" in w for w in sim.warnings)
+    assert np.allclose(sim.run([]).positions, asked.run([]).positions)
+    with pytest.raises(UserError, match=f"explicit stiffness vector has {n + 1} entries"):
+        sm.prepare(body, JELLY, sc, t, settings={"anchors": 200, "stiffness": k[:n + 1]})

@@ -209,3 +209,56 @@ runpy.run_path({str(repo_root / "training" / "train.py")!r}, run_name="__main__"
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert is_checkpoint(tmp_path / "ck")
 
+
+
+def test_a_solid_with_fewer_anchors_trains_on_its_own(tmp_path):
+    """A solid too small or thin for N_a anchors has fewer (its ground truth too): the model takes the largest
+    count, the short object's targets are padded and masked, so what the head says past its anchors costs nothing;
+    the same counts are refused while the dataset's card says its ground truth is mixed (a rebuild under way)."""
+    from unipixie.core.model.network import UniPixieModel
+    from unipixie.core.model.objective import SamplingSettings, TrainingObjective, make_draws
+    from unipixie.training.train import Collate, build_config
+
+    root = tmp_path / "data"
+    make_dataset(root, 3, resolution=8, feature_dim=8, anchors=6, seed=2)
+    files = list_samples(root)
+    short = TrainingSample.load(files[0])
+    short.spring.stiffness_min, short.spring.stiffness_max = short.spring.stiffness_min[:4], short.spring.stiffness_max[:4]
+    short.save(files[0])
+    cfg = build_config(TrainSettings(data=str(root), out="", **TINY), TrainingSample.load(files[-1]), files)
+    assert cfg.spring_anchors == 6
+    samples = [TrainingSample.load(f) for f in files]
+    batch = Collate(cfg)([(s, i, s.object_id) for i, s in enumerate(samples)])
+    assert batch.spring_mask[0].tolist() == [1, 1, 1, 1, 0, 0, 1] and bool(batch.spring_mask[1:].all())
+    torch.manual_seed(0)
+    objective = TrainingObjective(UniPixieModel(cfg)).eval()
+    draws = make_draws(batch, cfg.spring_dim, False, SamplingSettings(), "cpu")
+    with torch.no_grad():
+        base = objective(batch, draws)["spring_stiffness"]
+        batch.spring_lo[0, 4:6] += 5.0  # what lies past the short object's anchors is no target
+        batch.spring_hi[0, 4:6] -= 5.0
+        assert torch.equal(objective(batch, draws)["spring_stiffness"], base)
+        batch.spring_lo[0, 3] += 5.0  # its own anchors are
+        assert not torch.equal(objective(batch, draws)["spring_stiffness"], base)
+    out = tmp_path / "ck"
+    assert main(["train", "--data", str(root), "--out", str(out), "--steps", "2", "--batch", "3", "--preset", "tiny",
+                 "--device", "cpu"]) == 0
+    assert json.loads((out / "config.json").read_text())["config"]["spring_anchors"] == 6
+    # while a ground-truth rebuild is under way the short counts may be another network's: refused by name
+    (root / "dataset.json").write_text(json.dumps({"ground_truth_settings": [{"settings": None, "objects": 2},
+                                                                             {"settings": {"spring_anchors": 4},
+                                                                              "objects": 1}]}))
+    with pytest.raises(UserError, match="the model expects 6 spring anchors, 1 with 4"):
+        train(TrainSettings(data=str(root), out=str(tmp_path / "ck2"), steps=1, **TINY))
+    # more anchors than the model has is refused whatever the card says
+    (root / "dataset.json").unlink()
+    longer = TrainingSample.load(files[1])
+    longer.spring.stiffness_min = np.concatenate([longer.spring.stiffness_min, longer.spring.stiffness_min[:2]])
+    longer.spring.stiffness_max = np.concatenate([longer.spring.stiffness_max, longer.spring.stiffness_max[:2]])
+    longer.save(files[1])
+    from unipixie.training.train import check_spring_anchors
+
+    with pytest.raises(UserError, match="the model expects 6 spring anchors, 1 with 8"):
+        check_spring_anchors(files, 6, root)
+    assert main(["train", "--data", str(root), "--out", str(out), "--steps", "3", "--preset", "tiny", "--resume",
+                 "--device", "cpu"]) == 2  # the data now asks for a model of 8

@@ -545,8 +545,9 @@ def evaluate(checkpoint, data, out, baselines=(), settings: EvalSettings | None 
                     _add(dists, ("LBS log10 E [Pa]", a), tl, arr["lbs_log10_E"][i])
                 if sample.spring is not None and "spring_log10_k" in arr:
                     tk = np.log10(ann_mod.interpolate(sample.spring.stiffness_min, sample.spring.stiffness_max, a, "E"))
-                    if tk.shape == arr["spring_log10_k"][i].shape:
-                        _add(dists, ("spring-mass log10 k [N]", a), tk, arr["spring_log10_k"][i])
+                    pk = arr["spring_log10_k"][i]
+                    if tk.size <= pk.size:  # a solid with fewer anchors than N_a uses the first entries
+                        _add(dists, ("spring-mass log10 k [N]", a), tk, pk[:tk.size])
         if oid in sim_ids:
             try:
                 rows, rend = _table2_object(ds, oid, sample, preds, alphas, settings, out, progress)

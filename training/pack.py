@@ -182,11 +182,14 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
     objects, parts = [], []
     fh, cur, cur_size = None, -1, 0
     largest = 0
+    anchor_counts: set = set()  # spring-mass N_a (a solid too small or thin for more has fewer)
     tmp_parts: dict = {}  # part name -> its unique temporary file (renamed once every part is whole)
     try:
         for split in splits:
             for oid in ds.ids(split):
                 sample = ds.sample(oid)
+                if sample.spring is not None:
+                    anchor_counts.add(int(sample.spring.stiffness_min.size))
                 part_ids, _ = ds.part_labels(oid)
                 blob = encode_object(sample, part_ids)
                 largest = max(largest, len(blob))
@@ -230,7 +233,7 @@ def write_pack(dataset_dir, out_dir, part_bytes: int = DEFAULT_PART_BYTES, split
              "splits": {s: sum(o["split"] == s for o in objects) for s in splits},
              "feature_model": first.grid.feature_model if first else "", "feature_dim": first.grid.dim if first else 0,
              "resolution": first.grid.geometry.resolution if first else 0,
-             "spring_anchors": int(first.spring.stiffness_min.size) if first is not None and first.spring is not None else 0,
+             "spring_anchors": max(anchor_counts, default=0),
              "quantisation": "features: per-object per-channel 8-bit, |error| <= feature_scale/510; everything else exact"}
     card = Path(dataset_dir) / "dataset.json"
     if card.is_file():
@@ -293,9 +296,12 @@ def unpack(pack_dir, out_dir) -> int:
         split.setdefault(s, []).append(sample.object_id)
         n += 1
     write_json(out / "split.json", split, indent=1)
-    recipe = _recipe_of(read_index(pack_dir))
+    index = read_index(pack_dir)
+    recipe = _recipe_of(index)
     if recipe is not None:
         write_json(out / "feature_recipe.json", recipe, indent=1)
+    if index.get("dataset_card"):  # training reads it (a ground truth still being rebuilt is refused)
+        write_json(out / "dataset.json", index["dataset_card"], indent=1)
     return n
 
 

@@ -20,7 +20,9 @@ lbs_params             float32 (650,)      LBS skinning parameters (:mod:`unipix
 lbs_E_min, lbs_E_max   float32 (K,)        the LBS solver's E range per voxel, Pa (cubature-point values
                                            assigned to the voxels they fall in / nearest)
 lbs_nu_min, lbs_nu_max float32 (K,)        the LBS solver's ν range per voxel
-spring_stiffness_min   float32 (N_a,)      spring-mass per-anchor stiffness at α = 0 (solver units, N/m)
+spring_stiffness_min   float32 (N_a,)      spring-mass per-anchor stiffness at α = 0 (solver units, N/m); N_a is
+                                           the object's own anchor count (fewer on a solid too small for the
+                                           network's, :func:`unipixie.training.train.check_spring_anchors`)
 spring_stiffness_max   float32 (N_a,)      ... at α = 1
 spring_softness_min    float32 ()          global softness η at α = 0 (dimensionless)
 spring_softness_max    float32 ()          ... at α = 1

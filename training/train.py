@@ -116,8 +116,8 @@ class Collate:
             raise UserError(f"{where}: {g.dim} feature channels, the model expects {cfg.feature_dim}")
         if g.geometry.resolution != cfg.grid_resolution:
             raise UserError(f"{where}: grid {g.geometry.resolution}³, the model expects {cfg.grid_resolution}³")
-        if sample.spring is not None and sample.spring.stiffness_min.size != cfg.spring_anchors:
-            raise UserError(f"{where}: {sample.spring.stiffness_min.size} spring anchors, the model expects "
+        if sample.spring is not None and sample.spring.stiffness_min.size > cfg.spring_anchors:
+            raise UserError(f"{where}: {sample.spring.stiffness_min.size} spring anchors, the model expects at most "
                             f"{cfg.spring_anchors} (set --set spring_anchors=N for a new model)")
 
     def __call__(self, items):
@@ -132,6 +132,7 @@ class Collate:
         vox, feats, mlo, mhi, mcls, llo, lhi = [], [], [], [], [], [], []
         lparams = np.zeros((B, self.cfg.lbs_param_count), np.float32)
         slo, shi = np.zeros((B, V), np.float32), np.zeros((B, V), np.float32)
+        smask = np.ones((B, V), np.float32)
         has = np.zeros((3, B), np.float32)
         seeds = []
         for b, (sample, seed, where) in enumerate(items):
@@ -156,7 +157,9 @@ class Collate:
                 lhi.append(np.zeros((K, 2)))
             if sample.spring is not None:
                 S = sample.spring
-                slo[b, :-1], shi[b, :-1] = n["stiffness"].encode(S.stiffness_min), n["stiffness"].encode(S.stiffness_max)
+                na = S.stiffness_min.size  # fewer than N_a on a solid too small or thin for more: padded, masked
+                slo[b, :na], shi[b, :na] = n["stiffness"].encode(S.stiffness_min), n["stiffness"].encode(S.stiffness_max)
+                smask[b, na:-1] = 0.0
                 slo[b, -1], shi[b, -1] = n["softness"].encode(S.softness_min), n["softness"].encode(S.softness_max)
                 has[2, b] = 1.0
             seeds.append(seed)
@@ -166,7 +169,7 @@ class Collate:
 
         return TrainBatch(t(vox, torch.int64), t(feats), B, self.cfg.grid_resolution, t(mlo), t(mhi),
                           t(mcls, torch.int64), t(llo), t(lhi), t(lparams), t(slo), t(shi),
-                          t(has[0]), t(has[1]), t(has[2]), seeds)
+                          t(has[0]), t(has[1]), t(has[2]), seeds, t(smask))
 
 
 class StepSamples:
@@ -256,8 +259,9 @@ def build_config(s: TrainSettings, first_sample, files):
 
     g = first_sample.grid
     base = dict(feature_model=g.feature_model, feature_dim=g.dim, grid_resolution=g.geometry.resolution)
-    if first_sample.spring is not None:
-        base["spring_anchors"] = int(first_sample.spring.stiffness_min.size)
+    counts = spring_anchor_counts(files)
+    if counts:  # the network's N_a: a solid too small or thin for it has fewer anchors (its targets are padded)
+        base["spring_anchors"] = max(counts)
     base.update(s.model)
     cfg = preset(s.preset, **base)
     if s.fit_normalisation:
@@ -281,24 +285,46 @@ def build_config(s: TrainSettings, first_sample, files):
     return cfg
 
 
-def check_spring_anchors(files, expected: int) -> None:
-    """Refuse a training set whose samples' spring targets differ in anchor count from ``expected`` (a dataset
-    whose ground truth is being rebuilt, :mod:`.ground_truth_rebuild`), naming the counts found; reads only the
-    spring target arrays, not the features."""
+def spring_anchor_counts(files) -> dict:
+    """{anchor count: [object ids]} of the samples' spring targets; reads only those arrays, not the features."""
     import numpy as np
 
     counts: dict = {}
     for f in files:
         with np.load(f, allow_pickle=False) as z:
             if "spring_stiffness_min" in z.files:
-                n = int(z["spring_stiffness_min"].size)
-                counts.setdefault(n, []).append(Path(f).stem)
+                counts.setdefault(int(z["spring_stiffness_min"].size), []).append(Path(f).stem)
+    return counts
+
+
+def check_spring_anchors(files, expected: int, data_dir=None) -> None:
+    """Refuse a training set whose spring targets were made with other network settings than ``expected`` anchors,
+    naming the counts found: one with more anchors than the model has, or any short of them while the dataset's
+    card (``data_dir``/dataset.json) says its ground truth is mixed (a rebuild under way,
+    :mod:`.ground_truth_rebuild`).  Otherwise a count below ``expected`` is a solid too small or thin for more
+    anchors (:func:`unipixie.solvers.spring_mass_network.select_anchors`), trained on its own anchors."""
+    counts = spring_anchor_counts(files)
     other = {n: ids for n, ids in counts.items() if n != expected}
+    if not _ground_truth_mixed(data_dir):
+        other = {n: ids for n, ids in other.items() if n > expected}
     if other:
         found = "; ".join(f"{len(ids)} with {n} (e.g. {ids[0]})" for n, ids in sorted(other.items()))
         raise UserError(f"the training samples' spring targets have different anchor counts: the model expects "
                         f"{expected} spring anchors, {found} — finish the dataset's ground-truth rebuild (unipixie "
                         "dataset ground-truth) or train on one kind")
+
+
+def _ground_truth_mixed(data_dir) -> bool:
+    """Whether the dataset card in ``data_dir`` lists more than one ground truth (False without a card)."""
+    import json
+
+    card = Path(data_dir) / "dataset.json" if data_dir is not None else None
+    if card is None or not card.is_file():
+        return False
+    try:
+        return len(json.loads(card.read_text()).get("ground_truth_settings") or []) > 1
+    except (OSError, ValueError, AttributeError):
+        raise UserError(f"{card} is not a readable dataset card; rebuild it with 'unipixie dataset card'") from None
 
 
 def _save(out: Path, objective, optimizer, step: int, s: TrainSettings, fingerprint: str, stats: dict) -> None:
@@ -364,7 +390,7 @@ def train(s: TrainSettings, progress=None) -> dict:
         torch.manual_seed(s.seed)
         model = UniPixieModel(cfg)
     Collate(cfg).check(first, str(files[0]))
-    check_spring_anchors(files, cfg.spring_anchors)
+    check_spring_anchors(files, cfg.spring_anchors, s.data)
     model.to(dev).train()
     weights = LossWeights(**s.loss)
     sampling = SamplingSettings(**s.sampling)

@@ -69,7 +69,9 @@ class TrainBatch:
     voxels (N, 4) int64 [sample, i, j, k]; features (N, D) float32.
     mpm_lo / mpm_hi (N, 3): y_min / y_max channels (log10 E, log10 ρ, ν normalised); mpm_class (N,) int64
     (-1 = unlabelled); lbs_lo / lbs_hi (N, 2); lbs_params (B, 650); spring_lo / spring_hi (B, V);
-    has_mpm / has_lbs / has_spring (B,) float32 in {0, 1}; seeds: (B,) per-object random seeds.
+    has_mpm / has_lbs / has_spring (B,) float32 in {0, 1}; seeds: (B,) per-object random seeds;
+    spring_mask (B, V) float32 in {0, 1} or None (all entries): 0 on the stiffness entries past an object's own
+    anchor count (a solid too small or thin for N_a anchors has fewer; its targets are padded).
     """
 
     voxels: torch.Tensor
@@ -88,6 +90,7 @@ class TrainBatch:
     has_lbs: torch.Tensor
     has_spring: torch.Tensor
     seeds: list = field(default_factory=list)
+    spring_mask: Optional[torch.Tensor] = None
 
     def to(self, device) -> "TrainBatch":
         kw = {k: (v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
@@ -218,7 +221,12 @@ class TrainingObjective(nn.Module):
         xt = (1.0 - ts) * draws.noise_spring + ts * x1
         v = m.spring(xt.to(z.dtype), draws.t_spring, draws.alpha, m.spring.context(z)).float()
         serr = (v - (x1 - draws.noise_spring)).pow(2)
-        spring_k, spring_eta = serr[:, :-1].mean(dim=1), serr[:, -1]
+        if batch.spring_mask is None:
+            spring_k = serr[:, :-1].mean(dim=1)
+        else:  # the mean over each object's own anchors (padded entries carry no target)
+            mask = batch.spring_mask[:, :-1]
+            spring_k = (serr[:, :-1] * mask).sum(dim=1) / mask.sum(dim=1).clamp(min=1.0)
+        spring_eta = serr[:, -1]
 
         per_sample = (batch.has_mpm * (mpm_flow + w.class_ce * mpm_class)
                       + w.lbs * batch.has_lbs * (lbs_flow + w.hypernet * hyper)
