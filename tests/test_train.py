@@ -256,9 +256,9 @@ def test_a_solid_with_fewer_anchors_trains_on_its_own(tmp_path):
     longer.spring.stiffness_min = np.concatenate([longer.spring.stiffness_min, longer.spring.stiffness_min[:2]])
     longer.spring.stiffness_max = np.concatenate([longer.spring.stiffness_max, longer.spring.stiffness_max[:2]])
     longer.save(files[1])
-    from unipixie.training.train import check_spring_anchors
+    from unipixie.training.train import check_spring_anchors, spring_anchor_counts
 
     with pytest.raises(UserError, match="the model expects 6 spring anchors, 1 with 8"):
-        check_spring_anchors(files, 6, root)
+        check_spring_anchors(spring_anchor_counts(files), 6, root)
     assert main(["train", "--data", str(root), "--out", str(out), "--steps", "3", "--preset", "tiny", "--resume",
                  "--device", "cpu"]) == 2  # the data now asks for a model of 8

@@ -19,7 +19,8 @@ Two ways to run it:
 
 When every finished object carries the target settings, ``build.json`` is updated to them (later shards and
 resumes of ``dataset build`` then use them); until then the card lists the mixture
-(``ground_truth_settings``), and training refuses a set whose spring-anchor counts differ.
+(``ground_truth_settings``), and training refuses a training split whose spring-anchor counts differ while it does
+(a solid too small for the anchors asked has fewer whatever the settings: :func:`.train.check_spring_anchors`).
 """
 
 from __future__ import annotations

@@ -252,14 +252,15 @@ def _precision(s: TrainSettings, dev) -> str:
     return s.precision
 
 
-def build_config(s: TrainSettings, first_sample, files):
-    """The model config for a new run: preset + overrides, input sizes from the data."""
+def build_config(s: TrainSettings, first_sample, files, anchor_counts: dict | None = None):
+    """The model config for a new run: preset + overrides, input sizes from the data (``anchor_counts``:
+    :func:`spring_anchor_counts` of ``files`` when already read)."""
     from ..core.model.config import preset
     from ..core.model.normalization import fitted_norm, normalisation_to_dict
 
     g = first_sample.grid
     base = dict(feature_model=g.feature_model, feature_dim=g.dim, grid_resolution=g.geometry.resolution)
-    counts = spring_anchor_counts(files)
+    counts = spring_anchor_counts(files) if anchor_counts is None else anchor_counts
     if counts:  # the network's N_a: a solid too small or thin for it has fewer anchors (its targets are padded)
         base["spring_anchors"] = max(counts)
     base.update(s.model)
@@ -297,13 +298,13 @@ def spring_anchor_counts(files) -> dict:
     return counts
 
 
-def check_spring_anchors(files, expected: int, data_dir=None) -> None:
+def check_spring_anchors(counts: dict, expected: int, data_dir=None) -> None:
     """Refuse a training set whose spring targets were made with other network settings than ``expected`` anchors,
     naming the counts found: one with more anchors than the model has, or any short of them while the dataset's
     card (``data_dir``/dataset.json) says its ground truth is mixed (a rebuild under way,
     :mod:`.ground_truth_rebuild`).  Otherwise a count below ``expected`` is a solid too small or thin for more
-    anchors (:func:`unipixie.solvers.spring_mass_network.select_anchors`), trained on its own anchors."""
-    counts = spring_anchor_counts(files)
+    anchors (:func:`unipixie.solvers.spring_mass_network.select_anchors`), trained on its own anchors.
+    ``counts``: :func:`spring_anchor_counts` of the training files."""
     other = {n: ids for n, ids in counts.items() if n != expected}
     if not _ground_truth_mixed(data_dir):
         other = {n: ids for n, ids in other.items() if n > expected}
@@ -371,6 +372,7 @@ def train(s: TrainSettings, progress=None) -> dict:
     files = list_samples(s.data, "train")
     fingerprint = data_fingerprint(files)
     first = TrainingSample.load(files[0])
+    anchor_counts = spring_anchor_counts(files)  # read once: the model's N_a and the check below
 
     start_step = 0
     if is_checkpoint(out) and not s.resume:
@@ -379,18 +381,18 @@ def train(s: TrainSettings, progress=None) -> dict:
         if not is_checkpoint(out):
             raise UserError(f"--resume: no checkpoint in {out} to continue")
         cfg = read_config(out)
-        requested = build_config(replace(s, fit_normalisation=False), first, files)
+        requested = build_config(replace(s, fit_normalisation=False), first, files, anchor_counts)
         diff = cfg.differences(requested, ignore=("normalisation",) if s.fit_normalisation else ())
         if diff:
             raise UserError(f"--resume: the checkpoint in {out} was made with another model config: "
                             + "; ".join(diff) + " (use the original --preset/--set options)")
         model, _ = load_model(out, device="cpu", expect=cfg)
     else:
-        cfg = build_config(s, first, files)
+        cfg = build_config(s, first, files, anchor_counts)
         torch.manual_seed(s.seed)
         model = UniPixieModel(cfg)
     Collate(cfg).check(first, str(files[0]))
-    check_spring_anchors(files, cfg.spring_anchors, s.data)
+    check_spring_anchors(anchor_counts, cfg.spring_anchors, s.data)
     model.to(dev).train()
     weights = LossWeights(**s.loss)
     sampling = SamplingSettings(**s.sampling)
