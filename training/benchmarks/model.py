@@ -1,7 +1,8 @@
 """``unipixie bench model``: inference time of all three heads at 64³ and training throughput.
 
 Inference: the model at the requested preset (default: the paper's sizes) with random weights (the
-timing does not depend on the weights), a procedural object with ~30k occupied voxels on a 64³ grid
+timing does not depend on the weights), or a trained checkpoint (``--checkpoint DIR``: its own sizes, feature
+width and spring anchors, e.g. the shipped ``models/default``), a procedural object with ~30k occupied voxels on a 64³ grid
 and D = 768 random features; all three heads with 15 Heun steps, at 1 α and at 11 α's (one batched
 pass each).  On CUDA also the peak GPU memory.  Training: samples/s of the full objective (all heads,
 latent consistency term) on a synthetic 64³ dataset of that object, in one process and, on a machine
@@ -31,6 +32,9 @@ HELP = "material model: inference time (all heads, 1 and 11 alphas, 64^3) and tr
 def add_arguments(p):
     p.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     p.add_argument("--preset", default="paper", help="model size preset (default paper)")
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="time this trained model instead (its sizes, feature width and spring anchors; --preset and "
+                        "--feature-dim are then ignored; inference cases only)")
     p.add_argument("--voxels", type=int, default=30000, help="occupied voxels of the test object (default 30000)")
     p.add_argument("--feature-dim", type=int, default=768, help="feature width D (default 768, CLIP ViT-B/16)")
     p.add_argument("--runs", type=int, default=None, help="timed runs per case (default 5 on GPU, 1 on CPU)")
@@ -79,28 +83,41 @@ def run(args) -> list[dict]:
         from ...core.errors import UserError
 
         raise UserError(f"unknown --cases {sorted(unknown)}; choose from mpm1, all1, all11, train")
+    if args.checkpoint and "train" in cases:
+        from ...core.errors import UserError
+
+        raise UserError("--checkpoint times a trained model's inference; the training case times a preset: leave "
+                        "'train' out of --cases (e.g. --cases mpm1,all1,all11)")
     dev = resolve_torch_device(args.device)
     gpu = dev.type == "cuda"
     runs = args.runs or (5 if gpu else 1)
-    R = 64
-    cfg = preset(args.preset, feature_model="bench-random", feature_dim=args.feature_dim, grid_resolution=R)
-    torch.manual_seed(0)
-    model = UniPixieModel(cfg)
-    # random, non-zero weights everywhere (AdaLN-Zero layers start at zero; a trained model's are not)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            if p.dim() >= 2 and torch.count_nonzero(p) == 0:
-                p.normal_(0.0, 0.02)
-    predictor = Predictor(model, dev)
+    if args.checkpoint:
+        predictor = Predictor.load(args.checkpoint, device=str(dev))
+        cfg = predictor.cfg
+        model = predictor.model
+        what = f"checkpoint {Path(args.checkpoint).name} ({cfg.feature_model})"
+    else:
+        cfg = preset(args.preset, feature_model="bench-random", feature_dim=args.feature_dim, grid_resolution=64)
+        torch.manual_seed(0)
+        model = UniPixieModel(cfg)
+        # random, non-zero weights everywhere (AdaLN-Zero layers start at zero; a trained model's are not)
+        with torch.no_grad():
+            for name, p in model.named_parameters():
+                if p.dim() >= 2 and torch.count_nonzero(p) == 0:
+                    p.normal_(0.0, 0.02)
+        predictor = Predictor(model, dev)
+        what = f"{args.preset} sizes"
+    R = int(cfg.grid_resolution)
     occ = procedural_occupancy(R, args.voxels)
     K = int(occ.sum())
     rng = np.random.default_rng(0)
-    grid = FeatureGrid(GridGeometry(R, [-0.5] * 3, 1.0 / R), occ, rng.normal(size=(K, args.feature_dim)).astype(np.float16),
-                       feature_model="bench-random")
+    grid = FeatureGrid(GridGeometry(R, [-0.5] * 3, 1.0 / R), occ,
+                       rng.normal(size=(K, cfg.feature_dim)).astype(np.float16), feature_model=cfg.feature_model)
     name = _device_name(dev)
     tokens = int(predictor.model.layout(VoxelBatch.from_grids([occ], [np.zeros((K, 1), np.float32)])).token_valid.sum())
     params = predictor.model.parameter_count()["total"]
-    base = f"{args.preset} sizes ({params / 1e6:.0f}M params), 64^3, {K} voxels, {tokens} patch tokens, D={args.feature_dim}"
+    base = (f"{what} ({params / 1e6:.0f}M params, {cfg.spring_anchors} spring anchors), {R}^3, {K} voxels, "
+            f"{tokens} patch tokens, D={cfg.feature_dim}")
     print(f"model: {base}; device {name}; {runs} run(s) per case", flush=True)
     results = []
 
@@ -141,7 +158,8 @@ def run(args) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="unipixie-bench-model-") as tmp:
         data = Path(tmp) / "data"
         _make_dataset(data, R, args.voxels, args.feature_dim, cfg.spring_anchors, count=max(4, 2 * per_gpu))
-        s = TrainSettings(data=str(data), out=str(Path(tmp) / "run1"), steps=steps, batch=per_gpu, preset=args.preset,
+        s = TrainSettings(data=str(data), out=str(Path(tmp) / "run1"), steps=steps, batch=per_gpu,
+                          preset=args.preset,
                           device=str(dev), save_every=10 ** 9, log_every=10 ** 9, warmup=1, lr=5e-5)
         stats = train(s)
         label = (f"training, all heads + consistency, batch {per_gpu}, {stats['precision']}, 1 process, "
