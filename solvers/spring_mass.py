@@ -91,7 +91,9 @@ by 1.25 / (1 + ν_i) (the material's shear modulus μ) and the volumetric term a
 (:func:`.spring_mass_network.poisson_split`; ν below 1/4 runs as ν = 1/4, above
 :data:`.spring_mass_network.MAX_NETWORK_POISSON_RATIO` = 0.45 as 0.45).  With the model's explicit k the same
 holds with E_i = the modulus k stands for (:func:`.spring_mass_network.youngs_modulus_from_stiffness`) and ν_i
-from the material field.  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly).
+from the material field.  Masses: m_i = Σ ρ ΔV over the cell (mass is conserved exactly), then changed as little
+as possible so that the network's centre of mass and inertia are the solid's
+(:func:`.spring_mass_network.moment_matched_masses`).
 
 **Effects.**
 ``linear_drag`` / ``quadratic_drag`` / ``wind``: forces on every anchor as the registry says.

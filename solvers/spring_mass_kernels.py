@@ -165,12 +165,30 @@ def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
 
 
 @wp.func
+def drag_kick(vi: wp.vec3, a: wp.vec3, rate: float, tau: float):
+    """Velocity (m/s) after τ s of dv/dt = a − rate · v with a (m/s²) and rate (1/s) held: exact,
+    vi e^{−rate τ} + a (1 − e^{−rate τ}) / rate (the exponentials in float64; a series where rate τ is small)."""
+    x = wp.float64(rate) * wp.float64(tau)
+    decay = wp.exp(-x)
+    if wp.abs(x) < wp.float64(1.0e-3):
+        phi = wp.float64(tau) * (wp.float64(1.0) - x * (wp.float64(0.5) - x / wp.float64(6.0)))
+    else:
+        phi = (wp.float64(1.0) - decay) / wp.float64(rate)
+    return vi * float(decay) + a * float(phi)
+
+
+@wp.func
 def kicked_velocity(e: int, vi: wp.vec3, f: wp.vec3, im: float, accel: wp.array(dtype=wp.vec3),
                     lin_drag: wp.array(dtype=float), quad_drag: wp.array(dtype=float), tau: float):
-    """Velocity (m/s) after a kick of τ s: vi + τ (body acceleration + im f), with the drags implicit
-    (v / (1 + τ (c + k |v|)): unconditionally stable for τ > 0)."""
-    vn = vi + tau * (accel[e] + im * f)
-    return vn / (1.0 + tau * (lin_drag[e] + quad_drag[e] * wp.length(vn)))
+    """Velocity (m/s) after a kick of τ s: body acceleration + im f held over the kick, the drags integrated exactly
+    (:func:`drag_kick`; a quadratic drag's rate k |v| from the speed of the mean of the velocities before and after
+    a first pass).  Second order in the leapfrog and stable for any drag.  The drag on the velocity after alone
+    (backward Euler, as before) was first order: a thrown cube with c = 0.4 s⁻¹ at 192 anchors fell 0.94 mm short of
+    the closed form in 0.8 s, one under quadratic drag k = 1 m⁻¹ 4 mm; now 7 µm and 11 µm
+    (`tests/test_spring_mass.py::test_drags_follow_their_closed_forms_to_a_few_micrometres`)."""
+    a = accel[e] + im * f
+    first = drag_kick(vi, a, lin_drag[e] + quad_drag[e] * wp.length(vi + tau * a), tau)
+    return drag_kick(vi, a, lin_drag[e] + quad_drag[e] * wp.length(0.5 * (vi + first)), tau)
 
 
 @wp.func
