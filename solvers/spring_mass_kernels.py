@@ -187,6 +187,10 @@ def kicked_velocity(e: int, vi: wp.vec3, f: wp.vec3, im: float, accel: wp.array(
     the closed form in 0.8 s, one under quadratic drag k = 1 m⁻¹ 4 mm; now 7 µm and 11 µm
     (`tests/test_spring_mass.py::test_drags_follow_their_closed_forms_to_a_few_micrometres`)."""
     a = accel[e] + im * f
+    if lin_drag[e] == 0.0 and quad_drag[e] == 0.0:
+        return vi + tau * a
+    if quad_drag[e] == 0.0:
+        return drag_kick(vi, a, lin_drag[e], tau)
     first = drag_kick(vi, a, lin_drag[e] + quad_drag[e] * wp.length(vi + tau * a), tau)
     return drag_kick(vi, a, lin_drag[e] + quad_drag[e] * wp.length(0.5 * (vi + first)), tau)
 
