@@ -184,9 +184,8 @@ def test_linear_drag_decays_exponentially():
 
 
 def test_drags_follow_their_closed_forms_to_a_few_micrometres():
-    """The drag acts on the mean of the velocities before and after a kick (trapezoidal, second order; the quadratic
-    drag's rate from the speed of that mean): a stiff cube
-    thrown spinning under gravity with linear drag c = 0.4 s⁻¹ (192 anchors, 0.8 s) keeps its centre on
+    """The drag is integrated exactly over each kick (the other forces held; the quadratic drag's rate from the speed
+    of the mean of the velocities before and after a first pass): a stiff cube thrown spinning under gravity with linear drag c = 0.4 s⁻¹ (192 anchors, 0.8 s) keeps its centre on
     x₀ + (1 − e^{−ct}) (v₀ − g/c)/c + g t/c within 20 µm (measured 7 µm; 0.94 mm with the drag on the velocity after
     alone), and one falling under quadratic drag k = 1 m⁻¹ falls v_T²/g · ln cosh(g t / v_T) within 0.01 % (measured
     0.0006 %, 11 µm; 0.22 %, 4 mm, before)."""
