@@ -314,7 +314,14 @@ class SpringMassSimulation(Simulation):
         ``spring_factor``, :func:`.spring_mass_network.poisson_split`)."""
         s = self.spring_ends
         kf = k_anchor * self.spring_factor
-        return 0.5 * (kf[s[:, 0]] + kf[s[:, 1]]) * self.spring_weight / self.network.rest_length
+        kappa = 0.5 * (kf[s[:, 0]] + kf[s[:, 1]]) * self.spring_weight / self.network.rest_length
+        if self.settings.mixing in ("series", "harmonic"):
+            # the spring's two halves in series: the harmonic over the arithmetic mean of its ends' moduli (the
+            # stiffness per unit E is the anchors' geometry; exactly 1 where both ends have one modulus)
+            e = k_anchor / np.maximum(self.stiffness / np.maximum(self.youngs_modulus, 1e-300), 1e-300)
+            ei, ej = e[s[:, 0]], e[s[:, 1]]
+            kappa = kappa * 4.0 * ei * ej / np.maximum((ei + ej) ** 2, 1e-300)
+        return kappa
 
     def star_volume_gradients(self) -> tuple[np.ndarray, np.ndarray]:
         """The linearised volume change of every anchor star, J_k − 1 ≈ b_k·u: b_k's block g_h = G_k⁻¹ d0_h (H, 3) on

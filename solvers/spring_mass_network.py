@@ -420,7 +420,10 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     own = np.bincount(cell, deforming, n)
     w = np.where(own[cell] > 0, deforming, fvol)
     w_sum = np.bincount(cell, w, n)
-    E_cell = np.bincount(cell, w * mat.E, n) / np.maximum(w_sum, 1e-300)
+    if settings.mixing == "harmonic":  # the cell's materials in series (Reuss); one material: its own E
+        E_cell = w_sum / np.maximum(np.bincount(cell, w / np.maximum(mat.E, 1e-300), n), 1e-300)
+    else:  # in parallel (Voigt)
+        E_cell = np.bincount(cell, w * mat.E, n) / np.maximum(w_sum, 1e-300)
     nu_cell = np.bincount(cell, w * mat.nu, n) / np.maximum(w_sum, 1e-300)
     # an anchor whose cell is empty (cannot happen for anchors drawn from the fill points, kept safe)
     empty = volume <= 0

@@ -29,6 +29,13 @@ STIFFNESS_CALIBRATION = 0.94
 """c_E: measured correction of the affine estimate (docs/spring_mass.md, tests/test_spring_mass.py)."""
 
 
+MIXING_RULES = ("arithmetic", "series", "harmonic")
+"""How the network averages the moduli where materials mix (:attr:`SpringMassSettings.mixing`): ``arithmetic``, a
+cell's E the volume-weighted mean of its fill points' and a spring the mean of its two ends (the stiff, Voigt,
+bound); ``series``, the cells so, but a spring joining two moduli its two halves in series; ``harmonic``, the
+springs so and a cell's E the volume-weighted harmonic mean of its fill points' (the soft, Reuss, bound).  All
+three are exact for one material (docs/spring_mass.md, "Mixed materials")."""
+
 STEP_BOUNDS = ("spectral", "gershgorin")
 """How the substep's stability limit bounds the network's highest frequency: ``spectral``, its largest eigenvalue
 at rest (Lanczos, once per network); ``gershgorin``, per-anchor row sums (safe for any deformation, 2–3 times
@@ -57,6 +64,8 @@ class SpringMassSettings(SolverSettings):
     volumetric: the volumetric term per anchor that gives the network the material's Poisson ratio ν (springs
         rescaled to the material's shear modulus plus ½ λ_extra V (J − 1)² per anchor star, :mod:`.spring_mass`);
         False: springs only (ν = 1/4 whatever the material says; 1.6–1.8 times the substep rate on the CPU).
+    mixing: ``"arithmetic"`` (default), ``"series"`` or ``"harmonic"``, how a cell's and a spring's modulus are
+        averaged where materials mix (:data:`MIXING_RULES`); one material gives the same network with each.
     step_bound: ``"spectral"`` (default) or ``"gershgorin"``, how the stability limit bounds the network's highest
         frequency (:data:`STEP_BOUNDS`, :meth:`.spring_mass.SpringMassSimulation.stable_substep`).
     lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
@@ -81,6 +90,7 @@ class SpringMassSettings(SolverSettings):
     lanes_per_anchor: Optional[int] = setting(None, "count", optional=True, maximum=1024)
     volumetric: bool = setting(True, "flag")
     step_bound: str = setting("spectral", "choice", choices=STEP_BOUNDS)
+    mixing: str = setting("arithmetic", "choice", choices=MIXING_RULES)
 
     def check(self):
         self.fixed_springs = min(self.fixed_springs, self.neighbours)

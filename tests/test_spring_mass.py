@@ -402,6 +402,49 @@ def test_material_field_drives_the_network():
     assert sim.network.mass.sum() == pytest.approx(800.0 * 0.2 ** 3, rel=1e-6)
 
 
+def test_mixing_rules_bound_a_mixed_cell_and_spring_and_agree_on_one_material():
+    """``mixing``: one material gives the same network under every rule; where a stiff and a soft half meet, a
+    harmonic cell's E is the volume-weighted harmonic mean of its fill points' (an arithmetic or series one's is their
+    mean) and, under series and harmonic, a spring joining the two materials is its halves in series:
+    4 E_i E_j / (E_i + E_j)² of the arithmetic spring (docs/spring_mass.md, "Mixed materials")."""
+    body = box_body((0.2, 0.1, 0.1), (0, 0, 0.05))
+    rules = ("arithmetic", "series", "harmonic")
+    one = {rule: sm.prepare(body, JELLY, Scenario(), [0.0, 0.01], settings={"anchors": 120, "mixing": rule})
+           for rule in rules}
+    for rule in rules[1:]:
+        np.testing.assert_allclose(one[rule].youngs_modulus, one["arithmetic"].youngs_modulus, rtol=1e-12)
+        np.testing.assert_allclose(one[rule].spring_kappa, one["arithmetic"].spring_kappa, rtol=1e-12)
+    pts = np.stack(np.meshgrid(*[np.linspace(-0.1, 0.1, 41)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    E = np.where(pts[:, 0] < 0.0, 1e6, 1e4)
+    from unipixie.solvers.material_sampling import PointMaterial
+
+    field = PointMaterial(pts, E, np.full(len(pts), 0.3), np.full(len(pts), 800.0))
+    sims = {rule: sm.prepare(body, field, Scenario(), [0.0, 0.01], settings={"anchors": 120, "mixing": rule})
+            for rule in rules}
+    net = sims["harmonic"].network
+    fill_E = np.where(net.fill_points[:, 0] < 0.0, 1e6, 1e4)
+    w = np.bincount(net.fill_cell, net.fill_volume, net.count)
+    arithmetic = np.bincount(net.fill_cell, net.fill_volume * fill_E, net.count) / w
+    harmonic = w / np.bincount(net.fill_cell, net.fill_volume / fill_E, net.count)
+    mixed = (arithmetic > 1.01e4) & (arithmetic < 0.99e6)
+    assert mixed.sum() >= 3
+    np.testing.assert_allclose(sims["arithmetic"].youngs_modulus, arithmetic, rtol=1e-9)
+    np.testing.assert_allclose(sims["series"].youngs_modulus, arithmetic, rtol=1e-9)
+    np.testing.assert_allclose(sims["harmonic"].youngs_modulus, harmonic, rtol=1e-9)
+    assert np.all(harmonic[mixed] < 0.5 * arithmetic[mixed])
+    # springs between two unmixed cells of the two materials: the series factor, on the same geometry
+    sa, sh = sims["arithmetic"], sims["harmonic"]
+    e = sh.youngs_modulus
+    i, j = net.springs[:, 0], net.springs[:, 1]
+    pure = ~mixed[i] & ~mixed[j]
+    across = pure & (np.abs(np.log10(e[i] / e[j])) > 1.9)
+    same = pure & (e[i] == e[j])
+    assert across.sum() >= 5 and same.sum() >= 50
+    for ratio in (sh.spring_kappa / sa.spring_kappa, sims["series"].spring_kappa / sa.spring_kappa):
+        np.testing.assert_allclose(ratio[across], 4 * 1e6 * 1e4 / (1e6 + 1e4) ** 2, rtol=1e-6)
+        np.testing.assert_allclose(ratio[same], 1.0, rtol=1e-9)
+
+
 def test_simulate_dispatches_and_cancels():
     body = box_body((0.1, 0.1, 0.1), (0, 0, 0.2))
     traj = simulate("spring", body, JELLY, Scenario(), [0.0, 0.05], settings={"anchors": 60})
