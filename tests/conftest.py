@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
 from pathlib import Path
 
 import pytest
+
+# A suite started in the background by a shell without job control (`make test &` in a script) inherits SIGINT
+# ignored, and Python then never installs its KeyboardInterrupt handler: the Ctrl-C tests
+# (tests/test_fault_interruption.py) would find no Ctrl-C to test.  Give the test process Python's own handler.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 _SESSION_TMP = tempfile.mkdtemp(prefix="unipixie-tests-")
 # Blender reads these at import time: never touch ~/.config/blender from tests.
