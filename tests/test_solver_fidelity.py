@@ -57,6 +57,22 @@ def test_refinement_series_split_the_lbs_ladder_into_cubature_and_time_step_each
     assert len(one) == 1 and [r["resolution"] for r in one[0][1]] == ["512 anchors", "2048 anchors", "8192 anchors"]
 
 
+def test_the_lbs_handle_ladder_is_its_own_series_ordered_by_handles():
+    """The bars' LBS ladder adds runs that set the handles and a finer sampling at once: they form one more series,
+    named by the setting that varies among them (handles, the first at the default 10), coarse → fine."""
+    from unipixie.core.benchmarks.fidelity import LADDERS, refinement_series
+
+    ladder = LADDERS["cantilever_z"]["lbs"]
+    rows = [{"resolution": label, "settings": settings, "default": default, "value": float(i)}
+            for i, (label, settings, default, _level) in enumerate(ladder)][::-1]
+    series = dict(refinement_series("lbs", rows))
+    assert sorted(series) == ["cubature_points", "handles", "max_dt"] and list(series)[-1] == "handles"
+    assert [r["settings"].get("handles", 10) for r in series["handles"]] == [10, 20, 40]
+    assert all(r["settings"]["cubature_points"] == 3000 for r in series["handles"])
+    assert [r["resolution"] for r in series["cubature_points"]] == [
+        "200 cubature points", "500 cubature points", "1500 cubature points"]
+
+
 def test_every_drift_above_one_percent_is_stated_with_its_measured_value(repo_root):
     rows = json.loads((repo_root / "benchmarks" / "fidelity.json").read_text())["results"]
     worst = {}

@@ -49,13 +49,21 @@ _LBS = [("200 cubature points", {"cubature_points": 200}, False, "fast"),
         ("500 points, 5 ms steps", {"max_dt": 5e-3}, False, "fast"),
         ("500 points, 1 ms steps", {"max_dt": 1e-3}, False, "fast"),
         ("500 points, 0.5 ms steps", {"max_dt": 5e-4}, False, "full")]
+_LBS_SAMPLED = {"mass_samples": 16000, "cubature_points": 3000}
+"""Sampling at which LBS's bars hardly move with the samples any more (16,000 mass samples and 3000 cubature points:
+the static sag within 2.5 % of 6000 points; docs/fidelity.md, "LBS's bars: the handles are the resolution"), so
+that the handle ladder below measures the basis alone."""
+_LBS_BAR = _LBS + [
+    ("10 handles, 16,000 samples, 3000 cubature points", dict(_LBS_SAMPLED), False, "fast"),
+    ("20 handles, 16,000 samples, 3000 cubature points", {"handles": 20, **_LBS_SAMPLED}, False, "fast"),
+    ("40 handles, 16,000 samples, 3000 cubature points", {"handles": 40, **_LBS_SAMPLED}, False, "fast")]
 _MPM_BAR = [("2 cells across the thickness", {"dx": 0.01}, False, "full"),
             ("3 cells across the thickness", {"dx": 0.02 / 3}, False, "full"),
             ("bake default (4 cells across the thinnest part)", {}, True, "full"),
             ("8 cells across the thickness", {"dx": 0.0025}, False, "full")]
 LADDERS = {
-    "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
-    "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS},
+    "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_BAR},
+    "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_BAR},
     "drop": {"mpm": _MPM_CUBE, "spring_mass": _SPRING, "lbs": _LBS},
     "slide": {"mpm": _MPM_CUBE[:3], "spring_mass": _SPRING[:2], "lbs": _LBS[:2] + _LBS[3:4]},
     "drag_linear": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
@@ -212,7 +220,7 @@ def plot(results: list[dict], out_dir: Path) -> list[Path]:
                              key=lambda r: ladder.index(r["resolution"]) if r["resolution"] in ladder else len(ladder))
                 for number, (varied, series) in enumerate(refinement_series(solver, pts)):
                     xs = np.arange(len(series))
-                    ax.plot(xs, [r["value"] for r in series], "o-" if number == 0 else "s--", color=colours[solver],
+                    ax.plot(xs, [r["value"] for r in series], ("o-", "s--", "^:")[min(number, 2)], color=colours[solver],
                             label=solver if number == 0 else f"{solver}: {varied}")
                     for x, r in zip(xs, series):
                         if r.get("default"):
@@ -239,26 +247,42 @@ COARSER_WHEN_LARGER = ("max_dt", "dx")
 def refinement_series(solver: str, rows: list) -> list:
     """A solver's rows of one metric split into refinement series, one per setting the ladder varies (LBS's
     cubature points and its time step), each ordered coarse → fine with the bake default (settings ``{}``) in
-    every series at its own value.  Returns [(setting name or "", rows)]; one series when the ladder varies one
-    setting (or when a default's value is not known, kept in the given order)."""
+    every series at its own value.  Rows that set several settings at once (LBS's handle ladder at a fixed, finer
+    sampling) form one more series, named by the setting that varies among them and ordered by it.  Returns
+    [(setting name or "", rows)]; one series when the ladder varies one setting (or when a default's value is not
+    known, kept in the given order)."""
     from ...solvers.registry import SOLVERS
 
+    compound = [r for r in rows if len(r.get("settings") or {}) > 1]
+    rows = [r for r in rows if len(r.get("settings") or {}) <= 1]
     varied = []
     for r in rows:
         for name in (r.get("settings") or {}):
             if name not in varied:
                 varied.append(name)
-    if len(varied) < 2:
-        return [(varied[0] if varied else "", rows)] if rows else []
-    defaults = SOLVERS[solver].defaults()
-    out = []
-    for name in varied:
-        series = [r for r in rows if set(r.get("settings") or {}) in ({name}, set())]
-        values = [(r.get("settings") or {}).get(name, getattr(defaults, name, None)) for r in series]
+    defaults = SOLVERS[solver].defaults() if (len(varied) >= 2 or compound) else None
+
+    def value(r, name):
+        return (r.get("settings") or {}).get(name, getattr(defaults, name, None))
+
+    def ordered(series, name):
+        values = [value(r, name) for r in series]
         if all(v is not None for v in values):
             order = sorted(range(len(series)), key=lambda i: values[i], reverse=name in COARSER_WHEN_LARGER)
             series = [series[i] for i in order]
-        out.append((name, series))
+        return series
+
+    if len(varied) < 2:
+        out = [(varied[0] if varied else "", rows)] if rows else []
+    else:
+        out = []
+        for name in varied:
+            series = [r for r in rows if set(r.get("settings") or {}) in ({name}, set())]
+            out.append((name, ordered(series, name)))
+    if compound:
+        keys = list(dict.fromkeys(k for r in compound for k in r["settings"]))
+        moving = [k for k in keys if len({value(r, k) for r in compound}) > 1] or keys[:1]
+        out.append((moving[0], ordered(compound, moving[0])))
     return out
 
 
