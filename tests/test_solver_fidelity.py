@@ -40,18 +40,20 @@ def test_floor_lines_name_the_solver_and_sort_by_size():
 
 
 def test_refinement_series_split_the_lbs_ladder_into_cubature_and_time_step_each_coarse_to_fine():
-    """LBS's ladder varies two settings; the figure draws one series per setting, the bake default in both at its
-    own value (docs/figures/fidelity_drop.png: the step series 5 → 2.5 → 1 → 0.5 ms)."""
+    """LBS's ladder varies two settings, and its handle count at a finer sampling; the figure draws one series per
+    setting, the bake default in the first two at its own value (docs/figures/fidelity_drop.png: the step series
+    5 → 2.5 → 1 → 0.5 ms)."""
     from unipixie.core.benchmarks.fidelity import LADDERS, refinement_series
 
     rows = [{"resolution": label, "settings": settings, "default": default, "value": float(i)}
             for i, (label, settings, default, _level) in enumerate(LADDERS["drop"]["lbs"])]
     series = dict(refinement_series("lbs", rows))
-    assert list(series) == ["cubature_points", "max_dt"]
+    assert list(series) == ["cubature_points", "max_dt", "handles"]
     assert [r["resolution"] for r in series["cubature_points"]] == [
         "200 cubature points", "500 cubature points", "1500 cubature points"]
     assert [r["resolution"] for r in series["max_dt"]] == [
         "500 points, 5 ms steps", "500 cubature points", "500 points, 1 ms steps", "500 points, 0.5 ms steps"]
+    assert [r["settings"].get("handles", 10) for r in series["handles"]] == [10, 20, 40]
     one = refinement_series("spring_mass", [{"settings": s, "resolution": label}
                                             for label, s, _d, _l in LADDERS["drop"]["spring_mass"]])
     assert len(one) == 1 and [r["resolution"] for r in one[0][1]] == ["512 anchors", "2048 anchors", "8192 anchors"]
