@@ -40,6 +40,9 @@ METRIC_WORDS = {
 }
 """How the panel names each metric."""
 
+SHORT_WORDS = {"tip_sag": "sag", "frequency": "frequency", "rebound_peak": "rebound", "contact_duration": "contact"}
+"""The same, in the one line of a refinement's figures."""
+
 CANTILEVERS = ("cantilever_y", "cantilever_z")
 
 MEASURED_FLOORS: dict = {
@@ -58,6 +61,30 @@ MEASURED_FLOORS: dict = {
 
 MPM states none: its static sag is +2.0 % (cantilever_z, settled under drag), its frequencies within 0.8 %."""
 
+@dataclass(frozen=True)
+class MeasuredRefinement:
+    """How far the solver's own resolution takes its stated departures: the rows of ``benchmarks/fidelity.json``
+    measured at the ladder level ``resolution``, one :class:`MeasuredDeparture` per stated metric (its worst scene)."""
+
+    resolution: str
+    """The ladder label of those rows (``resolution`` in the benchmark file)."""
+    words: str
+    """How the panel names the settings."""
+    departures: tuple
+    """:class:`MeasuredDeparture` at that resolution, one per metric of the solver's :data:`MEASURED_FLOORS`."""
+
+
+REFINED: dict = {
+    "lbs": MeasuredRefinement(
+        "40 handles, 16,000 samples, 3000 cubature points",
+        "40 handles and 16,000 mass samples (no LBS head)",
+        (MeasuredDeparture("tip_sag", CANTILEVERS, -0.032),
+         MeasuredDeparture("contact_duration", ("drop",), 0.0),
+         MeasuredDeparture("frequency", CANTILEVERS, 0.015))),
+}
+"""solver → where refining its own resolution takes the departures above (docs/fidelity.md, "LBS's bars: the handles
+are the resolution"): LBS's 10 handles are what its head predicts, so the refinement is for bakes without it."""
+
 DRIFTS: dict = {}
 """solver → how far the mean an undamped oscillation swings about moves per period, as a fraction of the static sag
 (its ``error``), at the bake default, where it is above 1 % (``mean_drift_per_period`` rows of
@@ -67,8 +94,9 @@ while it swings; with APIC's affine matrix, the default before, 0.22 mm (2.4 %) 
 
 
 def floor_lines(solver: str) -> list:
-    """Short lines for the panel: a heading and one line per departure, largest first; [] for a solver
-    without departures above :data:`STATED_ABOVE` (or an unknown name)."""
+    """Short lines for the panel: a heading and one line per departure, largest first, then where refining the
+    solver's resolution takes them (:data:`REFINED`); [] for a solver without departures above :data:`STATED_ABOVE`
+    (or an unknown name)."""
     departures = MEASURED_FLOORS.get(solver, ())
     drift = DRIFTS.get(solver)
     if not departures and not drift:
@@ -78,4 +106,9 @@ def floor_lines(solver: str) -> list:
         lines.append(f"{METRIC_WORDS.get(d.metric, d.metric)} {100.0 * d.error:+.0f} %")
     if drift:
         lines.append(f"a swinging bar sinks {100.0 * drift.error:.0f} % of its sag per swing")
+    refined = REFINED.get(solver)
+    if refined is not None and departures:
+        lines.append(f"refined, {refined.words}:")
+        lines.append(", ".join(f"{SHORT_WORDS.get(d.metric, d.metric)} {100.0 * d.error:+.0f} %"
+                               for d in sorted(refined.departures, key=lambda d: -abs(d.error))))
     return lines

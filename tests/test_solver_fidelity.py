@@ -34,9 +34,27 @@ def test_floor_lines_name_the_solver_and_sort_by_size():
     lines = sf.floor_lines("lbs")
     assert lines[0].startswith("LBS at its bake defaults")
     assert lines[1] == "static bending sag -19 %"
-    sizes = [abs(float(line.rsplit(" ", 2)[-2])) for line in lines[1:]]
-    assert sizes == sorted(sizes, reverse=True) and len(lines) == 1 + len(sf.MEASURED_FLOORS["lbs"])
+    stated = lines[1:1 + len(sf.MEASURED_FLOORS["lbs"])]
+    sizes = [abs(float(line.rsplit(" ", 2)[-2])) for line in stated]
+    assert sizes == sorted(sizes, reverse=True)
+    assert lines[1 + len(stated):] == ["refined, 40 handles and 16,000 mass samples (no LBS head):",
+                                       "sag -3 %, frequency +2 %, contact +0 %"]
+    assert len(sf.floor_lines("spring_mass")) == 1 + len(sf.MEASURED_FLOORS["spring_mass"])  # no refinement stated
     assert sf.floor_lines("no_such_solver") == []
+
+
+def test_every_refinement_stated_is_the_benchmark_s_worst_value_at_that_level(repo_root):
+    """REFINED: at its ladder level, each metric the solver's floors state, with the worst measured error over its
+    scenes in benchmarks/fidelity.json (the newest row of each scene)."""
+    rows = json.loads((repo_root / "benchmarks" / "fidelity.json").read_text())["results"]
+    for solver, refined in sf.REFINED.items():
+        assert {d.metric for d in refined.departures} == {d.metric for d in sf.MEASURED_FLOORS[solver]}, solver
+        for d in refined.departures:
+            newest = {r["scene"]: r["error"] for r in rows if r.get("solver") == solver and r.get("metric") == d.metric
+                      and r.get("resolution") == refined.resolution and r.get("error") is not None}
+            assert set(newest) == set(d.scenes), (solver, d.metric, sorted(newest))
+            worst = max(newest.values(), key=abs)
+            assert d.error == pytest.approx(worst, abs=0.0015), (solver, d.metric, worst)
 
 
 def test_refinement_series_split_the_lbs_ladder_into_cubature_and_time_step_each_coarse_to_fine():
