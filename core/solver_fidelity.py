@@ -61,6 +61,7 @@ MEASURED_FLOORS: dict = {
 
 MPM states none: its static sag is +2.0 % (cantilever_z, settled under drag), its frequencies within 0.8 %."""
 
+
 @dataclass(frozen=True)
 class MeasuredRefinement:
     """How far the solver's own resolution takes its stated departures: the rows of ``benchmarks/fidelity.json``
