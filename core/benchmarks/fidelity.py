@@ -57,15 +57,15 @@ _LBS_HANDLES = [
     ("10 handles, 16,000 samples, 3000 cubature points", dict(_LBS_SAMPLED), False, "fast"),
     ("20 handles, 16,000 samples, 3000 cubature points", {"handles": 20, **_LBS_SAMPLED}, False, "fast"),
     ("40 handles, 16,000 samples, 3000 cubature points", {"handles": 40, **_LBS_SAMPLED}, False, "fast")]
-_LBS_BAR = _LBS + _LBS_HANDLES
+_LBS_WITH_HANDLES = _LBS + _LBS_HANDLES
 _MPM_BAR = [("2 cells across the thickness", {"dx": 0.01}, False, "full"),
             ("3 cells across the thickness", {"dx": 0.02 / 3}, False, "full"),
             ("bake default (4 cells across the thinnest part)", {}, True, "full"),
             ("8 cells across the thickness", {"dx": 0.0025}, False, "full")]
 LADDERS = {
-    "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_BAR},
-    "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_BAR},
-    "drop": {"mpm": _MPM_CUBE, "spring_mass": _SPRING, "lbs": _LBS + _LBS_HANDLES},
+    "cantilever_z": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_WITH_HANDLES},
+    "cantilever_y": {"mpm": _MPM_BAR, "spring_mass": _SPRING, "lbs": _LBS_WITH_HANDLES},
+    "drop": {"mpm": _MPM_CUBE, "spring_mass": _SPRING, "lbs": _LBS_WITH_HANDLES},
     "slide": {"mpm": _MPM_CUBE[:3], "spring_mass": _SPRING[:2], "lbs": _LBS[:2] + _LBS[3:4]},
     "drag_linear": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
     "drag_quadratic": {"mpm": _MPM_CUBE[:1] + _MPM_CUBE[2:3], "spring_mass": _SPRING[1:2], "lbs": _LBS[1:2]},
