@@ -128,6 +128,7 @@ from .effects import PhysicsTerms
 from .material_sampling import MaterialSpec
 from .scenario import Scenario
 from .contact import RIGID_CONTACT_BETA, RIGID_GROUND_STIFFNESS
+from .spring_mass_lattice import lattice_surface_points
 from .spring_mass_network import (MAX_NETWORK_POISSON_RATIO, MIN_STAR_ISOTROPY, NETWORK_POISSON_RATIO, build_network,
                                   p_wave_per_e, poisson_split, softness_weights, stiffness_from_youngs_modulus,
                                   youngs_modulus_from_stiffness)
@@ -277,8 +278,11 @@ class SpringMassSimulation(Simulation):
         if body.mesh is not None:
             import trimesh
 
-            count = max(8 * net.count, 1000)
-            surf, _ = trimesh.sample.sample_surface_even(body.mesh, count, seed=0)
+            if self.settings.layout == "lattice":  # mirror images of each other, as the lattice's cells are
+                surf = lattice_surface_points(body.mesh, net.fill_points)
+            else:
+                count = max(8 * net.count, 1000)
+                surf, _ = trimesh.sample.sample_surface_even(body.mesh, count, seed=0)
             pts += [np.asarray(body.mesh.vertices, np.float64), np.asarray(surf, np.float64)]
         # a point body's points stand for cubes of material: its surface lies half their spacing further out
         self.contact_margin = 0.0 if body.mesh is not None else 0.5 * float(np.mean(net.fill_volume)) ** (1.0 / 3.0)
@@ -687,7 +691,8 @@ class SpringMassSimulation(Simulation):
                                          "lower settings.safety, set more substeps or step_bound 'gershgorin'")
             meta = {"substep_s": float(dt_max) if math.isfinite(dt_max) else None, "substeps": total_substeps,
                     "step_bound": bound if self.settings.substeps is None else "fixed",
-                    "anchors": n, "springs": int(len(net.springs)), "softness": self.softness,
+                    "anchors": n, "layout": self.settings.layout, "springs": int(len(net.springs)),
+                    "softness": self.softness,
                     "device": dev, "wall_s": wall, "warnings": list(self.warnings) + list(notes)}
             traj = Trajectory(self.frame_times, pos, solver=self.solver, meta=meta)
             if particle_states:

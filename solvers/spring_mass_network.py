@@ -21,6 +21,7 @@ from .body import Body
 from .material_sampling import HomogeneousMaterial, MaterialSpec, sample_material
 from .sampling import farthest_point_sampling, fill_mesh, thickness_at, voxel_downsample
 from .scenario import Scenario
+from .spring_mass_lattice import lattice_anchors, lattice_fill, lattice_springs, merge_directed
 from .spring_mass_settings import DEFAULT_ANCHORS, SpringMassSettings
 
 AFFINE_STIFFNESS_FACTOR = 12.0
@@ -387,7 +388,12 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
 
     settings = SpringMassSettings.from_any(settings)
     warnings: list[str] = []
-    fill, fvol = fill_solid(body, settings.anchors * settings.fill_per_anchor, settings.max_fill_points)
+    lattice = settings.layout == "lattice"
+    if lattice:  # the symmetric layout (spring_mass_lattice.py)
+        fill, fvol, offsets, lattice_spacing = lattice_fill(body, settings.anchors, _solid_volume(body, body.rest_points),
+                                                            settings.max_fill_points)
+    else:
+        fill, fvol = fill_solid(body, settings.anchors * settings.fill_per_anchor, settings.max_fill_points)
     mat = sample_material(material, fill)
     simulated = np.array([materials_mod.get(int(c)).simulated for c in range(materials_mod.NUM_CLASSES)])
     keep = simulated[mat.material]
@@ -396,6 +402,8 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     if not np.all(keep):
         warnings.append(f"{int((~keep).sum())} of {len(keep)} fill points are background material and carry no mass")
         fill, fvol = fill[keep], fvol[keep]
+        if lattice:
+            offsets = offsets[keep]
         mat = type(mat)(mat.E[keep], mat.nu[keep], mat.density[keep], mat.material[keep])
     held = _HELD_CLASS
     pinned_fill = held[mat.material]
@@ -404,11 +412,15 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     if len(fill) < 2:
         raise UserError("the solid has fewer than 2 sample points; a spring-mass network needs at least 2 anchors")
     fill_spacing = float(np.mean(fvol)) ** (1.0 / 3.0)
-    thickness = thickness_at(fill, fill_spacing) if body.mesh is not None else None
-    a_idx = select_anchors(fill, settings.anchors, pinned_fill, point_volume=float(np.mean(fvol)), thickness=thickness)
+    if lattice:
+        a_idx = lattice_anchors(fill, offsets, lattice_spacing, pinned_fill, warnings)
+    else:
+        thickness = thickness_at(fill, fill_spacing) if body.mesh is not None else None
+        a_idx = select_anchors(fill, settings.anchors, pinned_fill, point_volume=float(np.mean(fvol)),
+                               thickness=thickness)
     anchors = fill[a_idx]
     n = len(anchors)
-    if n < settings.anchors:
+    if n < settings.anchors and not lattice:  # a lattice has the count nearest the one asked that its cubes allow
         warnings.append(f"only {n} anchors could be placed (asked for {settings.anchors})")
     tree = cKDTree(anchors)
     _, cell = tree.query(fill)
@@ -439,21 +451,17 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     solid = mesh_moments(body.mesh) if body.mesh is not None and uniform else None
     mass = moment_matched_masses(anchors, mass, fill, fvol * mat.density, cell, pinned, solid)
     # springs: directed k-NN merged into undirected pairs with the lower rank
-    k = min(settings.neighbours, n - 1)
-    _, nn = tree.query(anchors, k=k + 1)
-    nn = np.asarray(nn).reshape(n, k + 1)
-    src = np.repeat(np.arange(n), k)
-    dst = nn[:, 1:].reshape(-1)
-    rank = np.tile(np.arange(k), n)
-    ok = dst != src  # duplicates of a point can return itself later in the list
-    src, dst, rank = src[ok], dst[ok], rank[ok]
-    lo, hi = np.minimum(src, dst), np.maximum(src, dst)
-    order = np.lexsort((rank, hi, lo))
-    lo, hi, rank = lo[order], hi[order], rank[order]
-    first = np.ones(len(lo), dtype=bool)
-    first[1:] = (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])
-    springs = np.stack([lo[first], hi[first]], axis=1).astype(np.int64)
-    rank = rank[first].astype(np.int64)
+    if lattice:  # ties at the cut-off and within a shell broken by neither index nor order
+        springs, rank = lattice_springs(anchors, settings.neighbours)
+    else:
+        k = min(settings.neighbours, n - 1)
+        _, nn = tree.query(anchors, k=k + 1)
+        nn = np.asarray(nn).reshape(n, k + 1)
+        src = np.repeat(np.arange(n), k)
+        dst = nn[:, 1:].reshape(-1)
+        rank = np.tile(np.arange(k), n)
+        ok = dst != src  # duplicates of a point can return itself later in the list
+        springs, rank = merge_directed(src[ok], dst[ok], rank[ok])
     if body.mesh is not None:  # no springs through the air between parts; every anchor keeps its nearest three
         inside = _springs_inside(anchors, springs, fill, fill_spacing) | (rank < 3)
         if not np.all(inside):

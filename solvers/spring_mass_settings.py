@@ -36,6 +36,17 @@ bound); ``series``, the cells so, but a spring joining two moduli its two halves
 springs so and a cell's E the volume-weighted harmonic mean of its fill points' (the soft, Reuss, bound).  All
 three are exact for one material (docs/spring_mass.md, "Mixed materials")."""
 
+LAYOUTS = ("farthest", "lattice")
+"""Where the anchors lie (:attr:`SpringMassSettings.layout`): ``farthest``, farthest-point sampling of the fill,
+closer together in thin parts, in the order the model's spring head predicts its stiffnesses; ``lattice``, a cubic
+lattice centred on the body's bounding box, whose network keeps the box's mirror symmetries
+(:mod:`.spring_mass_lattice`; docs/spring_mass.md, "The lattice layout")."""
+LATTICE_STEP = 3
+"""Fill spacings per anchor spacing along each axis of the lattice layout: no fill point is then equidistant from
+two anchors (with 2, the points midway between two anchors would be shared out by index)."""
+LATTICE_FILL_PER_ANCHOR = LATTICE_STEP ** 3
+"""Fill points per anchor of the lattice layout (it does not use ``fill_per_anchor``)."""
+
 STEP_BOUNDS = ("spectral", "gershgorin")
 """How the substep's stability limit bounds the network's highest frequency: ``spectral``, its largest eigenvalue
 at rest (Lanczos, once per network); ``gershgorin``, per-anchor row sums (safe for any deformation, 2–3 times
@@ -66,6 +77,10 @@ class SpringMassSettings(SolverSettings):
         False: springs only (ν = 1/4 whatever the material says; 1.6–1.8 times the substep rate on the CPU).
     mixing: ``"arithmetic"`` (default), ``"series"`` or ``"harmonic"``, how a cell's and a spring's modulus are
         averaged where materials mix (:data:`MIXING_RULES`); one material gives the same network with each.
+    layout: ``"farthest"`` (default) or ``"lattice"``, where the anchors lie (:data:`LAYOUTS`): farthest-point
+        sampling, refined in thin parts and in the spring head's order, or a lattice centred on the bounding box that
+        keeps the body's mirror symmetries (27 fill points per anchor; ``fill_per_anchor`` is not used; the count is
+        the nearest a cubic lattice inside the solid allows).
     step_bound: ``"spectral"`` (default) or ``"gershgorin"``, how the stability limit bounds the network's highest
         frequency (:data:`STEP_BOUNDS`, :meth:`.spring_mass.SpringMassSimulation.stable_substep`).
     lanes_per_anchor: threads that gather one anchor's spring forces (a tile reduction joins them; more than
@@ -91,14 +106,16 @@ class SpringMassSettings(SolverSettings):
     volumetric: bool = setting(True, "flag")
     step_bound: str = setting("spectral", "choice", choices=STEP_BOUNDS)
     mixing: str = setting("arithmetic", "choice", choices=MIXING_RULES)
+    layout: str = setting("farthest", "choice", choices=LAYOUTS)
 
     def check(self):
         self.fixed_springs = min(self.fixed_springs, self.neighbours)
-        if self.anchors * self.fill_per_anchor > self.max_fill_points:  # the network would outgrow its fill
+        per_anchor = LATTICE_FILL_PER_ANCHOR if self.layout == "lattice" else self.fill_per_anchor
+        if self.anchors * per_anchor > self.max_fill_points:  # the network would outgrow its fill
             raise UserError(
-                f"spring-mass setting 'anchors' = {self.anchors:,} needs {self.anchors * self.fill_per_anchor:,} fill "
-                f"points ({self.fill_per_anchor} per anchor), more than max_fill_points = {self.max_fill_points:,}: "
-                f"give at most {self.max_fill_points // self.fill_per_anchor:,} anchors, or raise max_fill_points")
+                f"spring-mass setting 'anchors' = {self.anchors:,} needs {self.anchors * per_anchor:,} fill "
+                f"points ({per_anchor} per anchor), more than max_fill_points = {self.max_fill_points:,}: "
+                f"give at most {self.max_fill_points // per_anchor:,} anchors, or raise max_fill_points")
         softness = as_number(self.softness)
         if softness is None:
             raise UserError(f"spring-mass setting 'softness' must be a number, got {self.softness!r}")
@@ -110,3 +127,6 @@ class SpringMassSettings(SolverSettings):
             if k.size == 0 or not np.all(np.isfinite(k)) or np.any(k <= 0):
                 raise UserError("explicit spring stiffness vector must be finite and positive (newtons, one per anchor)")
             self.stiffness = k
+            if self.layout != "farthest":
+                raise UserError("an explicit spring stiffness vector (the model's spring head) is one number per anchor "
+                                "of the 'farthest' layout; give layout 'farthest' with it, or no stiffness vector")
