@@ -193,3 +193,16 @@ def test_default_solver_is_the_most_faithful_the_device_affords():
 
     assert diagnose.default_solver("cpu") == "spring_mass"
     assert diagnose.default_solver("cuda") == diagnose.default_solver("cuda:1") == "mpm"
+
+
+def test_a_setting_given_changes_only_its_key_of_the_diagnosis_defaults():
+    """``--setting layout=lattice`` once dropped the diagnosis's 192 anchors for the bake's 2048 (ten times the cost)."""
+    from unipixie.core.diagnosis import diagnose
+
+    assert diagnose.diagnosis_settings("spring_mass", {"layout": "lattice"}) == {"anchors": 192, "layout": "lattice"}
+    assert diagnose.diagnosis_settings("spring_mass", {"anchors": 384}) == {"anchors": 384}
+    assert diagnose.diagnosis_settings("mpm", {"cells_across": 16}) == {"cells_across": 16, "viscous_cfl": 0.2}
+    assert diagnose.diagnosis_settings("spring_mass", None) == {"anchors": 192}
+    given = SpringMassSettings(anchors=96)
+    assert diagnose.diagnosis_settings("spring_mass", given) is given  # a settings object is used as it is
+

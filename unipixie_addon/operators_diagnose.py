@@ -82,12 +82,12 @@ def _load(settings):
 
 
 def _solver_settings(settings):
-    """The solver settings of the panel (``anchors=256, ...``), or the diagnosis defaults for the solver."""
+    """The solver settings of the panel (``anchors=256, ...``) over the diagnosis defaults for the solver."""
     from ..core.commands.diagnose import parse_settings
-    from ..core.diagnosis.diagnose import DEFAULT_SETTINGS
+    from ..core.diagnosis.diagnose import diagnosis_settings
 
     items = [x.strip() for x in settings.solver_settings.split(",") if x.strip()]
-    return parse_settings(items) if items else (dict(DEFAULT_SETTINGS.get(settings.solver, {})) or None)
+    return diagnosis_settings(settings.solver, parse_settings(items) if items else None)
 
 
 def _colour(settings, per_point, vmax=None) -> None:

@@ -103,6 +103,18 @@ whose explicit step is ∝ 1/η, then take half the substeps.  Measured (8 cells
 Log = Callable[[str], None]
 
 
+def diagnosis_settings(solver: str, settings=None):
+    """The solver settings a diagnosis of ``solver`` runs with: a settings object as it is; a dict (or ``None``) as
+    the keys it changes from :data:`DEFAULT_SETTINGS` — ``{"layout": "lattice"}`` keeps the diagnosis's 192
+    spring-mass anchors (not the bake's 2048), ``{"cells_across": 16}`` MPM's viscous factor 0.2.  Returns a dict,
+    a settings object, or ``None`` (the solver's own defaults)."""
+    from ...solvers import api
+
+    if settings is not None and not isinstance(settings, dict):
+        return settings
+    return {**DEFAULT_SETTINGS.get(api.canonical_solver(solver), {}), **(settings or {})} or None
+
+
 def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_on: Iterable = (),
              add: Sequence[str] = (), max_additions: int = DEFAULT_MAX_ADDITIONS, device: str = "cpu",
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
@@ -117,7 +129,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     add: effect names to add in this order whatever the ranking (the user's picks); after them
     the best significant effect is added each round.  max_additions: rounds that add an effect
     (0: rank only).  candidates: effect names to try (default: the whole registry).
-    settings: solver settings (dict or the solver's settings object; default :data:`DEFAULT_SETTINGS`).
+    settings: solver settings (the solver's settings object, used as it is, or a dict of the keys to change from
+    :data:`DEFAULT_SETTINGS`: ``{"layout": "lattice"}`` keeps the diagnosis's 192 anchors, not the bake's 2048).
     max_batch: parameter sets per ``run_batch`` launch (default 32; 1 for :data:`UNBATCHED_SOLVERS`).
     parallel: fit the candidates (and the held-out refits) side by side, their simulations joined into shared
     batches (:mod:`.batching`).  ``None``: on a GPU with a solver that batches (a batch of a few environments
@@ -159,8 +172,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
 
         check_out_dir(out_dir)
     sigma = estimate_noise(measurement.positions, measurement.rest)
-    if settings is None:
-        settings = dict(DEFAULT_SETTINGS.get(solver, {})) or None
+    settings = diagnosis_settings(solver, settings)
     api.coerce_settings(solver, settings)  # a bad value is named here, before the cost estimate reads it
     say(f"measurement: {measurement.summary()}")
     sane_warnings = sanity.check(measurement, solver, settings, sigma=sigma, allow_long=allow_long, log=say)
