@@ -6,7 +6,8 @@ The solid is a network of *anchors* (point masses) joined by springs:
   body's own points), thinned by voxel down-sampling and then ordered by farthest-point
   sampling; the first ``anchors`` points (default :data:`.spring_mass_settings.DEFAULT_ANCHORS` = 2048) are the
   anchors.  The order is deterministic — the model's spring head predicts one stiffness per
-  anchor in this order.  Each anchor owns the fill points nearest to it (its Voronoi cell):
+  anchor in this order.  (``layout="lattice"``: a lattice centred on the bounding box that keeps the body's mirror
+  symmetries instead, :mod:`.spring_mass_lattice`.)  Each anchor owns the fill points nearest to it (its Voronoi cell):
   its volume ``V_i`` and mass ``m_i = Σ ρ ΔV`` come from them.
 * **Springs.**  Each anchor is joined to its ``neighbours`` nearest anchors (default
   :data:`.spring_mass_settings.DEFAULT_NEIGHBOURS` = 32: in 3D this gives every anchor 30–45 springs, enough for

@@ -61,9 +61,10 @@ def _lattice_inside(mesh, centre: np.ndarray, spacing: float, half: np.ndarray,
     reach = np.ceil(half / spacing - 1e-9).astype(np.int64)
     total = float(np.prod(2.0 * reach + 1.0))
     if total > max_points:
-        raise UserError(f"the spring-mass lattice would need {total:,.0f} points in the body's bounding box at a spacing "
-                        f"of {1e3 * spacing:.3g} mm (limit {max_points:,}): the solid fills little of its box (its "
-                        "volume is small for its size: thin or open parts); use layout 'farthest' or fewer anchors")
+        raise UserError(f"the spring-mass lattice would need {total:,.0f} points in the body's bounding box at a "
+                        f"spacing of {1e3 * spacing:.3g} mm (limit {max_points:,}): the solid fills little of its box "
+                        "(its volume is small for its size: thin or open parts); use layout 'farthest' or fewer "
+                        "anchors")
     axes = [np.arange(-r, r + 1) for r in reach]
     offsets = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     points = centre + offsets * spacing
@@ -71,7 +72,8 @@ def _lattice_inside(mesh, centre: np.ndarray, spacing: float, half: np.ndarray,
     return offsets[inside], points[inside]
 
 
-def lattice_fill(body, anchors: int, volume: float, max_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def lattice_fill(body, anchors: int, volume: float,
+                 max_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Fill points of the solid on a lattice centred on its bounding box, spaced so that about ``anchors`` of its
     every-third points lie inside.
 
@@ -86,8 +88,8 @@ def lattice_fill(body, anchors: int, volume: float, max_points: int) -> tuple[np
     if not np.all(half > 0):
         raise UserError("the spring-mass 'lattice' layout needs a solid with extent along all three axes")
     if not (np.isfinite(volume) and volume > 0):
-        raise UserError(f"the spring-mass 'lattice' layout needs a solid of positive volume, got {volume!r} m³ (an open "
-                        "or inside-out mesh?); use layout 'farthest'")
+        raise UserError(f"the spring-mass 'lattice' layout needs a solid of positive volume, got {volume!r} m³ (an "
+                        "open or inside-out mesh?); use layout 'farthest'")
     target = max(int(anchors), 2)
     box_limit = int(_BOX_POINTS_FACTOR * max_points)
     spacing = (volume / target) ** (1.0 / 3.0)

@@ -72,7 +72,8 @@ class AnchorNetwork:
     """The anchors and springs of one solid (everything that does not depend on the effects).
 
     fill_points: (F, 3) m, samples of the solid; fill_volume: (F,) m³ each; fill_cell: (F,) anchor index.
-    anchors: (N, 3) m rest positions in FPS order; volume: (N,) m³; mass: (N,) kg;
+    anchors: (N, 3) m rest positions (farthest-point order for the 'farthest' layout, lattice order for 'lattice');
+    volume: (N,) m³; mass: (N,) kg;
     E: (N,) Pa and nu: (N,) Poisson's ratio, cell means (over the fill points of deforming classes where the cell has
     any); material: (N,) class ids;
     pinned: (N,) bool (clamp or stationary class).
@@ -390,8 +391,8 @@ def build_network(body: Body, material: MaterialSpec, scenario: Scenario | None 
     warnings: list[str] = []
     lattice = settings.layout == "lattice"
     if lattice:  # the symmetric layout (spring_mass_lattice.py)
-        fill, fvol, offsets, lattice_spacing = lattice_fill(body, settings.anchors, _solid_volume(body, body.rest_points),
-                                                            settings.max_fill_points)
+        volume = _solid_volume(body, body.rest_points)
+        fill, fvol, offsets, lattice_spacing = lattice_fill(body, settings.anchors, volume, settings.max_fill_points)
     else:
         fill, fvol = fill_solid(body, settings.anchors * settings.fill_per_anchor, settings.max_fill_points)
     mat = sample_material(material, fill)

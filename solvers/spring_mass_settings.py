@@ -128,5 +128,5 @@ class SpringMassSettings(SolverSettings):
                 raise UserError("explicit spring stiffness vector must be finite and positive (newtons, one per anchor)")
             self.stiffness = k
             if self.layout != "farthest":
-                raise UserError("an explicit spring stiffness vector (the model's spring head) is one number per anchor "
-                                "of the 'farthest' layout; give layout 'farthest' with it, or no stiffness vector")
+                raise UserError("an explicit spring stiffness vector (the model's spring head) is one number per "
+                                "anchor of the 'farthest' layout; give layout 'farthest' with it, or no stiffness vector")
