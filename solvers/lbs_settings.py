@@ -30,6 +30,9 @@ value at 2.5 ms against +8 % at the former 5 ms, whose soft floor gave back +10.
 clamped bars' sag and frequency are the same at 5 and 2.5 ms within 0.05 %; a frame costs up to twice the steps
 (the drop scene's whole run 1.06× on the CPU: set-up dominates)."""
 DEFAULT_NEWTON_ITERATIONS = 4
+KEPT_HESSIAN_STEPS_CPU = 16
+"""Steps an elastic Hessian is kept for on the CPU (``hessian_max_age`` 0), where its evaluation is most of a
+step's cost (docs/lbs.md, "Keeping the Hessian across steps")."""
 INTEGRATORS = ("newmark", "backward_euler")
 """Time integrators: Newmark's average acceleration (default: no numerical damping) and backward Euler (damps
 every vibration the step does not resolve: for settling into a static state with large steps)."""
@@ -49,6 +52,11 @@ class LBSSettings(SolverSettings):
     line_search_steps: step halvings before giving up on an iteration.
     reuse_hessian: factor the Hessian once per step and reuse it for the step's later Newton
         iterations (each still has a line search on the true energy).
+    hessian_max_age: keep the elastic Hessian of an earlier step for at most this many steps (1 = evaluate it at
+        every step; 0 = automatic: :data:`KEPT_HESSIAN_STEPS_CPU` on the CPU, 1 on a GPU).  A kept Hessian is
+        evaluated afresh when the step length changes, when the body has turned by more than
+        :data:`.lbs.HESSIAN_REUSE_MAX_TURN`, and after a step whose Newton iterations converged slowly; its steps
+        converge to a tenth of ``newton_tolerance`` (docs/lbs.md, "Keeping the Hessian across steps").
     clamp_stiffness: dimensionless penalty factor of the clamp (module docstring).
     friction_velocity: m/s, slip speed below which ground friction sticks.
     cache_skinning: reuse fitted parameters from the cache directory.
@@ -78,6 +86,7 @@ class LBSSettings(SolverSettings):
     newton_tolerance: float = setting(1e-6, "positive")
     line_search_steps: int = setting(10, "count")
     reuse_hessian: bool = setting(True, "flag")
+    hessian_max_age: int = setting(0, "count0")
     clamp_stiffness: float = setting(1.0, "positive")
     friction_velocity: float = setting(1e-3, "positive")
     cache_skinning: bool = setting(True, "flag")
