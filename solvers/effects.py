@@ -121,6 +121,8 @@ class Effect:
     signature: ClassVar[str] = ""
     params: ClassVar[tuple[Param, ...]] = ()
     solvers: ClassVar[frozenset] = frozenset(SOLVER_NAMES)
+    acts_at_ground: ClassVar[bool] = False
+    """The effect acts only where the solid touches the ground (it changes nothing in a scene without one)."""
 
     def __init__(self, **values):
         known = {p.name: p for p in self.params}
@@ -292,6 +294,7 @@ class GroundFriction(Effect):
     law = "Coulomb friction at the ground plane: tangential force ≤ μ × normal force; sticks below it"
     signature = "tangential residual only while in contact with the ground; abrupt stop"
     params = (Param("mu", "-", 0.5, 0.0, 2.0, "friction coefficient"),)
+    acts_at_ground = True
 
     def apply(self, terms, ctx):
         terms.friction_mu = max(terms.friction_mu, self.values["mu"])
@@ -316,6 +319,7 @@ class ContactDamping(Effect):
               Param("k", "Pa/m", 1.0e6, 1.0e3, 1.0e11, "normal stiffness of the floor per unit contact area",
                     log_scale=True))
 
+    acts_at_ground = True
     def apply(self, terms, ctx):
         terms.ground_stiffness = min(terms.ground_stiffness, self.values["k"])
         terms.ground_damping = max(terms.ground_damping, self.values["c"])

@@ -23,6 +23,7 @@ from ...solvers import effects as fx
 from ..errors import UserError
 from ..progress import Progress
 from .compare import kmeans_regions, region_box
+from .contact_fit import touches_ground
 from .fit import FitResult, Parametrisation, grid_search, levenberg_marquardt
 from .problem import EVALUATIONS, Problem, Reference, Scales, param_for
 from .results import CandidateResult
@@ -135,18 +136,23 @@ def _count_kinds(effect: fx.Effect) -> tuple[int, int]:
 
 
 def not_applicable_effects(names: Sequence[str], measurement, sigma: float) -> dict:
+    """{effect name: why it is not tried} for the effects of ``names`` that act only at the ground
+    (``Effect.acts_at_ground``: friction, a yielding floor) when the scenario has no ground or the measured solid
+    never comes within 2 % of its size plus 5 σ of it: they could change nothing, and each fit costs simulations."""
     out = {}
+    at_ground = [n for n in names if fx.get(n).acts_at_ground]
+    if not at_ground:
+        return out
     ground = measurement.scenario.ground_height
-    if "ground_friction" in names:
-        if ground is None:
-            out["ground_friction"] = "the scenario has no ground"
-        else:
-            z = measurement.positions[..., 2]
-            gap = np.nanmin(z) - ground if np.any(np.isfinite(z)) else math.inf
-            size = float(np.linalg.norm(np.ptp(measurement.rest, axis=0)))
-            if gap > 0.02 * size + 5 * sigma:
-                out["ground_friction"] = f"the solid never comes within {1e3 * gap:.0f} mm of the ground"
-    return out
+    if ground is None:
+        why = "the scenario has no ground"
+    elif touches_ground(measurement, sigma):
+        return out
+    else:
+        z = measurement.positions[..., 2]
+        gap = np.nanmin(z) - ground if np.any(np.isfinite(z)) else math.inf
+        why = f"the solid never comes within {1e3 * gap:.0f} mm of the ground"
+    return {n: why for n in at_ground}
 
 
 def fit_candidates(P: Problem, ref: Reference, names: Sequence[str], sc: Scales, material, plans: dict, *,
