@@ -140,6 +140,16 @@ REFRESH_AFTER_ITERATIONS = 2
 it afresh."""
 
 
+def _turn_angle(before: np.ndarray | None, after: np.ndarray | None) -> float:
+    """Largest angle (rad) between two (E, 3, 3) stacks of rotations (:meth:`LBSSimulation._mean_rotation`);
+    infinite where either is missing."""
+    if before is None or after is None:
+        return math.inf
+    R = np.swapaxes(before, 1, 2) @ after
+    cos = np.clip(0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0), -1.0, 1.0)
+    return float(np.max(np.arccos(cos)))
+
+
 def lift_basis(weights: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """a(X) = w ⊗ [x̂; 1]: (N, H+1) weights and (N, 3) normalised points -> (N, 4(H+1))."""
     xh1 = np.concatenate([x_hat, np.ones((len(x_hat), 1))], axis=1)
@@ -460,11 +470,11 @@ class LBSSimulation(Simulation):
                 # step start: elastic energy, gradient and Hessian at the predictor (the Hessian of an earlier
                 # step while it still converges the Newton iterations quickly: hessian_max_age)
                 t0 = time.perf_counter()
+                rotation = self._mean_rotation(Z_hat) if hessian_max_age > 1 else None
                 if (K_kept is None or kept_age >= hessian_max_age or abs(dt - kept_dt) > 1e-6 * dt or refresh_next
-                        or self._turned_since(kept_rotation, Z_hat) > HESSIAN_REUSE_MAX_TURN):
+                        or _turn_angle(kept_rotation, rotation) > HESSIAN_REUSE_MAX_TURN):
                     psi, g_el, K_el = elastic.evaluate(Z_hat, envs, hessian=True, Z_start=Zn)
-                    K_kept, kept_age, kept_dt, refresh_next = K_el, 0, dt, False
-                    kept_rotation = self._mean_rotation(Z_hat)
+                    K_kept, kept_age, kept_dt, refresh_next, kept_rotation = K_el, 0, dt, False, rotation
                     step_tolerance = tolerance
                     t1 = time.perf_counter()
                     clock.add("hessian_evaluation", t1 - t0)
@@ -622,15 +632,6 @@ class LBSSimulation(Simulation):
         A = Z[:, :, 4 * H:4 * H + 3] / self.extent + np.eye(3)
         U, _, Vt = np.linalg.svd(A)
         return U @ Vt
-
-    def _turned_since(self, rotation: np.ndarray | None, Z: np.ndarray) -> float:
-        """Largest angle (rad) any environment's body has turned from ``rotation`` (:meth:`_mean_rotation`) to
-        states Z; infinite without a ``rotation``."""
-        if rotation is None:
-            return math.inf
-        R = np.swapaxes(rotation, 1, 2) @ self._mean_rotation(Z)
-        cos = np.clip(0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0), -1.0, 1.0)
-        return float(np.max(np.arccos(cos)))
 
     def _lifted_positions(self, Z_frames: np.ndarray, points: str, chunk_bytes: int = 64 << 20) -> np.ndarray:
         """(E, T, N, 3) float32 m: x = X + Z_t a(X) of the ``"tracked"`` or ``"cubature"`` points for the states
