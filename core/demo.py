@@ -41,6 +41,7 @@ import numpy as np
 
 from ..solvers import registry as solver_registry
 from .errors import CancelledError, UserError
+from .jobs import usable_cores
 from .progress import Progress, silent
 
 
@@ -480,15 +481,9 @@ def _run_demo(out_dir, quick, checkpoint, device, say, progress) -> DemoResult:
 def bake_workers(device: str, jobs: int) -> int:
     """How many demo bakes run at once: one per CPU core this process may use on the CPU (Warp runs each
     simulation's CPU kernels on one core), one at a time on a GPU."""
-    import os
-
     if str(device).startswith("cuda"):
         return 1
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(int(jobs), cores))
+    return max(1, min(int(jobs), usable_cores()))
 
 
 class KernelWarmUp:

@@ -55,6 +55,50 @@ def wait_workers(futures, timeout: Optional[float] = None) -> bool:
     return all(f.done() for f in futures)
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity where the system says, else all of them)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def map_in_threads(fn: Callable, items, threads: int) -> list:
+    """``[fn(item) for item in items]`` computed by up to ``threads`` worker threads (:func:`start_worker`), each
+    taking the next item as it finishes one; results in the items' order.  Worth it where ``fn`` spends its time
+    outside the interpreter lock (compiled kernels).  When a call raises, the workers take no new items and the
+    first exception (in the order they happened) is raised here once every worker has stopped."""
+    items = list(items)
+    threads = max(1, min(int(threads), len(items)))
+    if threads <= 1:
+        return [fn(item) for item in items]
+    results: list = [None] * len(items)
+    lock = threading.Lock()
+    state = {"next": 0, "error": None}
+
+    def work() -> None:
+        while True:
+            with lock:
+                i = state["next"]
+                if i >= len(items) or state["error"] is not None:
+                    return
+                state["next"] = i + 1
+            try:
+                results[i] = fn(items[i])
+            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread below
+                with lock:
+                    if state["error"] is None:
+                        state["error"] = exc
+                return
+
+    wait_workers([start_worker(work, name=f"unipixie-map-{k}") for k in range(threads)])
+    if state["error"] is not None:
+        raise state["error"]
+    return results
+
+
 class BackgroundRun:
     """Run ``work(progress)`` in a worker thread (:func:`start_worker`); the caller polls and may cancel.
 

@@ -87,6 +87,13 @@ class Simulation:
         terms = [self.terms_for(e) for e in effect_lists]
         return self._run_terms(terms, progress=progress, particle_states=False)
 
+    @property
+    def concurrent_runs(self) -> bool:
+        """May separate runs of this prepared simulation go on at once, each in its own thread?  True where a run's
+        launches are independent of any other's and leave the interpreter lock while they compute (the spring-mass
+        solver's CPU kernels), so runs on several CPU cores take less time together; False by default."""
+        return False
+
     def _run_terms(self, terms: list[PhysicsTerms], *, progress: Progress | None,
                    particle_states: bool) -> list[Trajectory]:  # pragma: no cover - abstract
         raise NotImplementedError

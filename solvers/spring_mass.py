@@ -518,6 +518,13 @@ class SpringMassSimulation(Simulation):
         return np.linalg.det(B @ self._gram_inv)
 
     # -------------------------------------------------------------------------------- running
+    @property
+    def concurrent_runs(self) -> bool:
+        """True on the CPU with one lane per anchor (the default there): its kernels are the plain-launch ones
+        (:func:`.spring_mass_kernels.spring_star_pass_serial`, no tile operations, whose CPU scratch memory Warp keeps
+        once per process), a run's arrays are its own and the prepared network is only read."""
+        return not self._wp.get_device(self.device).is_cuda and (self.settings.lanes_per_anchor or 1) == 1
+
     def _run_terms(self, terms_list: list[PhysicsTerms], *, progress: Progress | None,
                    particle_states: bool) -> list[Trajectory]:
         """Run the environments at the substep of ``settings.step_bound``; a run that diverges at the spectral bound
@@ -591,11 +598,16 @@ class SpringMassSimulation(Simulation):
         use_graph = wp.get_device(dev).is_cuda
         lanes = self.settings.lanes_per_anchor or (GPU_LANES_PER_ANCHOR if use_graph else 1)
 
+        serial = lanes == 1 and not use_graph  # CPU kernels without tile operations (concurrent_runs)
+
         def launch_pass(a, record_cmd=False):
             """Launch (or record) a substep's first pass (springs and stars) on buffer a's state."""
             inputs = [bufs[a][0], bufs[a][1], self._d_start, self._d_nbr, self._d_rest_vec, self._d_slot_start,
                       self._d_slot_nbr, self._d_slot_he, d_rest, d_kappa, d_dash, d_yield, self._d_gram_inv, d_vol,
                       d_force, d_stress, damped, plastic]
+            if serial:
+                return wp.launch(K.spring_star_pass_serial, dim=(n_env, n), inputs=inputs, device=dev,
+                                 record_cmd=record_cmd)
             return wp.launch_tiled(K.spring_star_pass, dim=(n_env, n), inputs=inputs, device=dev, block_dim=lanes,
                                    record_cmd=record_cmd)
 
@@ -609,7 +621,14 @@ class SpringMassSimulation(Simulation):
                                                                 device=dev, block_dim=lanes, record_cmd=record_cmd)]
 
         cmds = []
-        if not use_graph:
+        if serial:  # every substep pair of a frame in one launch, one thread per environment
+            pairs_cmd = wp.launch(K.substep_pairs_serial, dim=(n_env,), device=dev, record_cmd=True, inputs=[
+                bufs[0][0], bufs[0][1], bufs[1][0], bufs[1][1], self._d_start, self._d_nbr, self._d_rest_vec,
+                self._d_slot_start, self._d_slot_nbr, self._d_slot_he, d_rest, d_kappa, d_dash, d_yield,
+                self._d_gram_inv, d_vol, d_force, d_stress, damped, plastic, self._d_inv_mass, self._d_rest_pos,
+                d_accel, d_lin, d_quad, d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c,
+                ground, has_ground, has_volume, 1e-4, 0])
+        elif not use_graph:
             recorded = [launch_substep(a, 1 - a, 1e-4, record_cmd=True) for a in (0, 1)]
             cmds = [c for r in recorded for c in r]
             dt_cmds = [r[-1] for r in recorded]  # the substep launches (the first pass has no dt)
@@ -668,6 +687,10 @@ class SpringMassSimulation(Simulation):
                             launch_substep(s % 2, 1 - s % 2, dt)
                     graphs[key] = cap.graph
                 wp.capture_launch(graphs[key])
+            elif serial:
+                pairs_cmd.set_param_by_name("dt", float(dt))
+                pairs_cmd.set_param_by_name("pairs", n_sub // 2)
+                pairs_cmd.launch()
             else:
                 for c in dt_cmds:
                     c.set_param_by_name("dt", float(dt))

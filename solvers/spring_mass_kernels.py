@@ -102,6 +102,52 @@ def star_deformation(e: int, i: int, x: wp.array2d(dtype=wp.vec3), x_rest: wp.ar
     return B * gram_inv[i]
 
 
+@wp.func
+def star_springs(e: int, i: int, first: int, stride: int, x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                 slot_start: wp.array(dtype=int), slot_nbr: wp.array(dtype=int), slot_he: wp.array2d(dtype=int),
+                 rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                 yield_strain: wp.array2d(dtype=float), force: wp.array2d(dtype=wp.vec3), damped: int, plastic: int):
+    """The springs anchor ``i`` owns, slots slot_start[i] + first, + stride, ... (one lane's share; all of them with
+    first 0, stride 1): each spring's force to both its half-edges (:func:`spring_star_pass`)."""
+    xi = x[e, i]
+    vi = v[e, i]
+    k = slot_start[i] + first
+    stop = slot_start[i + 1]
+    while k < stop:
+        j = slot_nbr[k]
+        dv = wp.vec3(0.0, 0.0, 0.0)
+        if damped != 0:
+            dv = v[e, j] - vi
+        f = spring_force(e, k, x[e, j] - xi, dv, rest, kappa, dashpot, yield_strain, damped, plastic)
+        force[e, slot_he[k, 0]] = f
+        force[e, slot_he[k, 1]] = -f
+        k += stride
+
+
+@wp.func
+def star_stretch(e: int, i: int, first: int, stride: int, x: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
+                 nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3)):
+    """Σ_h d_h d0_hᵀ (m²) over anchor ``i``'s half-edges start[i] + first, + stride, ... (one lane's share)."""
+    xi = x[e, i]
+    B = wp.mat33(0.0)
+    h = start[i] + first
+    stop = start[i + 1]
+    while h < stop:
+        B = B + wp.outer(x[e, nbr[h]] - xi, rest_vec[h])
+        h += stride
+    return B
+
+
+@wp.func
+def star_stress(stretch: wp.mat33, gram_inv: wp.mat33, s: float):
+    """A_i = s (J − 1) cof(F) G⁻¹ (N/m) of a star with F = stretch · G⁻¹ and stiffness s = V λ_extra (J)."""
+    F = stretch * gram_inv
+    Ft = wp.transpose(F)
+    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+    J = wp.dot(Ft[0], wp.cross(Ft[1], Ft[2]))
+    return (s * (J - 1.0)) * (cof * gram_inv)
+
+
 @wp.kernel
 def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
                      nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3), slot_start: wp.array(dtype=int),
@@ -130,38 +176,52 @@ def spring_star_pass(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     any spring has a dashpot, a yield strain (:func:`spring_force`); force: (E, H) N per half-edge (the force on its
     anchor); stress: (E, N) N/m."""
     e, i, lane = wp.tid()
-    xi = x[e, i]
-    vi = v[e, i]
-    k = slot_start[i] + lane
-    stop = slot_start[i + 1]
-    while k < stop:
-        j = slot_nbr[k]
-        dv = wp.vec3(0.0, 0.0, 0.0)
-        if damped != 0:
-            dv = v[e, j] - vi
-        f = spring_force(e, k, x[e, j] - xi, dv, rest, kappa, dashpot, yield_strain, damped, plastic)
-        force[e, slot_he[k, 0]] = f
-        force[e, slot_he[k, 1]] = -f
-        k += wp.block_dim()
+    star_springs(e, i, lane, wp.block_dim(), x, v, slot_start, slot_nbr, slot_he, rest, kappa, dashpot, yield_strain,
+                 force, damped, plastic)
     s = vol_stiffness[e, i]
     if s == 0.0:  # the same for every lane of the block
         if lane == 0:
             stress[e, i] = wp.mat33(0.0)
         return
-    B = wp.mat33(0.0)
-    h = start[i] + lane
-    stop = start[i + 1]
-    while h < stop:
-        B = B + wp.outer(x[e, nbr[h]] - xi, rest_vec[h])
-        h += wp.block_dim()
+    B = star_stretch(e, i, lane, wp.block_dim(), x, start, nbr, rest_vec)
     total = wp.tile_sum(wp.tile(B, preserve_type=True))
     if lane == 0:
-        G = gram_inv[i]
-        F = total[0] * G
-        Ft = wp.transpose(F)
-        cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
-        J = wp.dot(Ft[0], wp.cross(Ft[1], Ft[2]))
-        stress[e, i] = (s * (J - 1.0)) * (cof * G)
+        stress[e, i] = star_stress(total[0], gram_inv[i], s)
+
+
+@wp.func
+def star_pass_anchor(e: int, i: int, x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                     start: wp.array(dtype=int), nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3),
+                     slot_start: wp.array(dtype=int), slot_nbr: wp.array(dtype=int), slot_he: wp.array2d(dtype=int),
+                     rest: wp.array2d(dtype=float), kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                     yield_strain: wp.array2d(dtype=float), gram_inv: wp.array(dtype=wp.mat33),
+                     vol_stiffness: wp.array2d(dtype=float), force: wp.array2d(dtype=wp.vec3),
+                     stress: wp.array2d(dtype=wp.mat33), damped: int, plastic: int):
+    """:func:`spring_star_pass` of anchor ``i`` by one thread (no tile operations): the same arithmetic in the same
+    order as the tiled kernel with one lane."""
+    star_springs(e, i, 0, 1, x, v, slot_start, slot_nbr, slot_he, rest, kappa, dashpot, yield_strain, force, damped,
+                 plastic)
+    s = vol_stiffness[e, i]
+    if s == 0.0:
+        stress[e, i] = wp.mat33(0.0)
+    else:
+        stress[e, i] = star_stress(star_stretch(e, i, 0, 1, x, start, nbr, rest_vec), gram_inv[i], s)
+
+
+@wp.kernel
+def spring_star_pass_serial(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
+                            nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3),
+                            slot_start: wp.array(dtype=int), slot_nbr: wp.array(dtype=int),
+                            slot_he: wp.array2d(dtype=int), rest: wp.array2d(dtype=float),
+                            kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                            yield_strain: wp.array2d(dtype=float), gram_inv: wp.array(dtype=wp.mat33),
+                            vol_stiffness: wp.array2d(dtype=float), force: wp.array2d(dtype=wp.vec3),
+                            stress: wp.array2d(dtype=wp.mat33), damped: int, plastic: int):
+    """:func:`spring_star_pass` by one thread per anchor (dim (E, N), a plain launch: the CPU, where the
+    leapfrog's kicks use it; :func:`star_pass_anchor`)."""
+    e, i = wp.tid()
+    star_pass_anchor(e, i, x, v, start, nbr, rest_vec, slot_start, slot_nbr, slot_he, rest, kappa, dashpot,
+                     yield_strain, gram_inv, vol_stiffness, force, stress, damped, plastic)
 
 
 @wp.func
@@ -255,6 +315,69 @@ def spring_substep(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
     if lane == 0:
         integrate_anchor(e, i, x[e, i], v[e, i], total[0], im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
                          contact_low, contact_area, rigid_k, rigid_c, ground, has_ground, dt)
+
+
+@wp.func
+def substep_anchor(e: int, i: int, x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                   x_out: wp.array2d(dtype=wp.vec3), v_out: wp.array2d(dtype=wp.vec3),
+                   start: wp.array(dtype=int), nbr: wp.array(dtype=int), force: wp.array2d(dtype=wp.vec3),
+                   rest_vec: wp.array(dtype=wp.vec3), inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
+                   accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float), quad_drag: wp.array(dtype=float),
+                   ground_law: wp.array(dtype=wp.vec3), contact_low: wp.array2d(dtype=float),
+                   contact_area: wp.array(dtype=float), rigid_k: wp.array2d(dtype=float),
+                   rigid_c: wp.array2d(dtype=float), ground: float, has_ground: int,
+                   stress: wp.array2d(dtype=wp.mat33), has_volume: int, dt: float):
+    """:func:`spring_substep` of anchor ``i`` by one thread (no tile operations; the same arithmetic)."""
+    im = inv_mass[i]
+    if im == 0.0:
+        x_out[e, i] = x_rest[i]
+        v_out[e, i] = wp.vec3(0.0, 0.0, 0.0)
+    else:
+        f = gathered_force(e, i, 0, 1, start, nbr, force, rest_vec, stress, has_volume)
+        integrate_anchor(e, i, x[e, i], v[e, i], f, im, x_out, v_out, accel, lin_drag, quad_drag, ground_law,
+                         contact_low, contact_area, rigid_k, rigid_c, ground, has_ground, dt)
+
+
+@wp.kernel
+def substep_pairs_serial(x: wp.array2d(dtype=wp.vec3), v: wp.array2d(dtype=wp.vec3),
+                         x_b: wp.array2d(dtype=wp.vec3), v_b: wp.array2d(dtype=wp.vec3), start: wp.array(dtype=int),
+                         nbr: wp.array(dtype=int), rest_vec: wp.array(dtype=wp.vec3),
+                         slot_start: wp.array(dtype=int), slot_nbr: wp.array(dtype=int),
+                         slot_he: wp.array2d(dtype=int), rest: wp.array2d(dtype=float),
+                         kappa: wp.array2d(dtype=float), dashpot: wp.array2d(dtype=float),
+                         yield_strain: wp.array2d(dtype=float), gram_inv: wp.array(dtype=wp.mat33),
+                         vol_stiffness: wp.array2d(dtype=float), force: wp.array2d(dtype=wp.vec3),
+                         stress: wp.array2d(dtype=wp.mat33), damped: int, plastic: int,
+                         inv_mass: wp.array(dtype=float), x_rest: wp.array(dtype=wp.vec3),
+                         accel: wp.array(dtype=wp.vec3), lin_drag: wp.array(dtype=float),
+                         quad_drag: wp.array(dtype=float), ground_law: wp.array(dtype=wp.vec3),
+                         contact_low: wp.array2d(dtype=float), contact_area: wp.array(dtype=float),
+                         rigid_k: wp.array2d(dtype=float), rigid_c: wp.array2d(dtype=float), ground: float,
+                         has_ground: int, has_volume: int, dt: float, pairs: int):
+    """``2 · pairs`` substeps of environment ``e`` (dim (E,): one thread per environment, the CPU only) in one launch:
+    each substep is :func:`star_pass_anchor` over every anchor, then :func:`substep_anchor` over every anchor (a
+    substep's two passes, as the two launches :func:`spring_star_pass` and :func:`spring_substep` do), from (x, v)
+    to (x_b, v_b) and back, so the state ends in (x, v).  A launch per substep pair costs nothing in the interpreter
+    (on the CPU the launches' Python was a fifth of a diagnosis-size substep) and leaves Python's lock free for other
+    runs (:attr:`.spring_mass.SpringMassSimulation.concurrent_runs`).  Same arrays and units as the two kernels; dt in
+    s; the same arithmetic in the same order: bit for bit their result."""
+    e = wp.tid()
+    n = x.shape[1]
+    for p in range(pairs):
+        for i in range(n):
+            star_pass_anchor(e, i, x, v, start, nbr, rest_vec, slot_start, slot_nbr, slot_he, rest, kappa, dashpot,
+                             yield_strain, gram_inv, vol_stiffness, force, stress, damped, plastic)
+        for i in range(n):
+            substep_anchor(e, i, x, v, x_b, v_b, start, nbr, force, rest_vec, inv_mass, x_rest, accel, lin_drag,
+                           quad_drag, ground_law, contact_low, contact_area, rigid_k, rigid_c, ground, has_ground,
+                           stress, has_volume, dt)
+        for i in range(n):
+            star_pass_anchor(e, i, x_b, v_b, start, nbr, rest_vec, slot_start, slot_nbr, slot_he, rest, kappa,
+                             dashpot, yield_strain, gram_inv, vol_stiffness, force, stress, damped, plastic)
+        for i in range(n):
+            substep_anchor(e, i, x_b, v_b, x, v, start, nbr, force, rest_vec, inv_mass, x_rest, accel, lin_drag,
+                           quad_drag, ground_law, contact_low, contact_area, rigid_k, rigid_c, ground, has_ground,
+                           stress, has_volume, dt)
 
 
 @wp.kernel

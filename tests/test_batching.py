@@ -97,10 +97,11 @@ def test_a_failing_job_stops_the_others():
 
 
 @pytest.mark.slow
-def test_diagnosis_side_by_side_gives_the_same_result():
+def test_diagnosis_side_by_side_gives_the_same_result(monkeypatch):
     """With the spring-mass solver (one parameter set per launch) fitting the candidates side by side gives
     bitwise the same diagnosis as fitting them one after another (the speculative half-step re-check and the
-    base fit's look-ahead only add runs)."""
+    base fit's look-ahead only add runs); and running a batch's simulations in threads at once (the CPU default,
+    :attr:`.Problem.threads`) the same as running them one after another."""
     m = synth.synthesize(["linear_drag:c=0.5"], "spring_mass", settings={"anchors": 64}, shape="cube",
                          scenario="throw", noise=0.001, occlusion=0.1, points=60, duration=0.4, fps=50.0, seed=5)
     kw = dict(settings={"anchors": 64}, max_additions=1, candidates=["linear_drag", "wind", "stiffness_region"])
@@ -115,6 +116,14 @@ def test_diagnosis_side_by_side_gives_the_same_result():
     assert side.candidates[0].dt_check["ok"]  # linear drag: re-checked at half the step, with the held-out refits
     np.testing.assert_array_equal(side.final_positions, one.final_positions)
     assert side.simulations > one.simulations  # the base fit looks ahead (more runs, fewer batches) side by side
+    from unipixie.core.diagnosis import problem
+
+    assert problem.concurrent_run_threads() >= 2  # so the runs above went on in threads
+    monkeypatch.setattr(problem, "CONCURRENT_RUNS_PER_CORE", 0.0)  # one thread: every run after the other
+    alone = diagnose.diagnose(m, "spring_mass", parallel=False, **kw)
+    assert [(c.name, c.sse, c.evaluations) for c in alone.candidates] == \
+        [(c.name, c.sse, c.evaluations) for c in one.candidates]
+    np.testing.assert_array_equal(alone.final_positions, one.final_positions)
 
 
 def test_half_step_settings_halve_every_limit_of_the_step():

@@ -366,6 +366,35 @@ def test_lanes_per_anchor_give_the_one_lane_result(monkeypatch):
         sm.SpringMassSettings(lanes_per_anchor=0)
 
 
+def test_runs_in_threads_at_once_give_the_runs_one_after_another():
+    """On the CPU (one lane per anchor) the solver's runs may go on at once in several threads (its kernels use no
+    tile operations, whose CPU scratch memory Warp keeps once per process: two tiled runs at once abort the
+    process): six runs with plasticity, damping, ground contact and friction, three threads, each trajectory the same
+    bit for bit as run alone.  With blocks of lanes (tile reductions) the solver says its runs must not share."""
+    import warp
+
+    from unipixie.core.jobs import map_in_threads
+
+    body = box_body((0.2, 0.05, 0.05), (0.08, 0, 0.05), tracked=np.array([[0.18, 0, 0.05], [0.05, 0.02, 0.03]]))
+    sc = Scenario(pinned_box=[[-1, -1, -1], [0, 1, 2]], initial_velocity=[0.3, 0.0, -0.5])
+    t = np.linspace(0, 0.1, 6)
+    sim = sm.prepare(body, JELLY, sc, t, settings={"anchors": 60})
+    assert sim.concurrent_runs
+    effs = [[fx.make("plasticity", yield_stress=3e3), fx.make("ground_friction", mu=0.1 * k)] for k in range(3)]
+    effs += [[fx.make("material_damping", eta=10.0 * (k + 1))] for k in range(3)]
+    alone = [sim.run(e).positions for e in effs]
+    together = map_in_threads(lambda e: sim.run(e).positions, effs, threads=3)
+    assert np.abs(alone[0][-1] - alone[0][0]).max() > 5e-3
+    for a, b in zip(alone, together):
+        np.testing.assert_array_equal(a, b)
+    old = warp.config.enable_cpu_blocks
+    try:
+        warp.config.enable_cpu_blocks = True
+        assert not sm.prepare(body, JELLY, sc, t, settings={"anchors": 60, "lanes_per_anchor": 4}).concurrent_runs
+    finally:
+        warp.config.enable_cpu_blocks = old
+
+
 def test_explicit_parameters_match_the_material_mapping():
     """Running with (k, η) from stiffness_from_youngs_modulus reproduces the material-driven run; a 4× stiffer
     k vector gives 4× the spring constants."""

@@ -112,3 +112,37 @@ def test_a_worker_jobs_error_reaches_the_driver():
 
     with pytest.raises(CancelledError, match="in the worker"):
         run_job(worker_job(work, poll_s=0.01))
+
+
+def test_map_in_threads_keeps_the_order_and_runs_side_by_side():
+    """Results come back in the items' order; two calls that wait for each other only finish when both run at once."""
+    from unipixie.core.jobs import map_in_threads
+
+    barrier = threading.Barrier(2, timeout=5)
+
+    def fn(x):
+        if x < 2:
+            barrier.wait()  # raises BrokenBarrierError unless the first two items run at the same time
+        time.sleep(0.001 * (5 - x))
+        return x * x
+
+    assert map_in_threads(fn, range(5), threads=2) == [0, 1, 4, 9, 16]
+    assert map_in_threads(lambda x: x + 1, [], threads=3) == []
+    assert map_in_threads(lambda x: x + 1, [1, 2], threads=1) == [2, 3]
+
+
+def test_map_in_threads_raises_the_first_error_and_takes_no_new_items():
+    from unipixie.core.jobs import map_in_threads
+
+    started = []
+
+    def fn(x):
+        started.append(x)
+        if x == 1:
+            raise ValueError("item 1 is bad")
+        time.sleep(0.05)
+        return x
+
+    with pytest.raises(ValueError, match="item 1 is bad"):
+        map_in_threads(fn, range(20), threads=2)
+    assert len(started) < 6  # the workers stopped taking items after the error

@@ -95,7 +95,8 @@ def add_arguments(p):
                    help="solver setting, e.g. anchors=256 (spring_mass) or cells_across=24 (mpm); repeatable")
     p.add_argument("--parallel", action=argparse.BooleanOptionalAction, default=None,
                    help="fit the candidate effects side by side with their simulations batched together "
-                        "(default: on a GPU with mpm/lbs, off on the CPU)")
+                        "(default: on a GPU with mpm/lbs and with spring_mass on the CPU, whose runs share the cores; "
+                        "off for mpm/lbs on the CPU)")
     p.add_argument("--quiet", action="store_true", help="print only the result")
     p.add_argument("--allow-long", action="store_true",
                    help="run even when the times look like milliseconds or the estimated cost passes the long-job "

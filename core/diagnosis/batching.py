@@ -5,8 +5,9 @@ grid, then one Levenberg–Marquardt iteration after another), each request only
 a GPU a batch of a few environments costs about as much as one, so running the fits one after another
 leaves it mostly idle.  :class:`BatchGate` runs each fit in its own thread; whenever every fit still
 running waits for simulations, the calling thread runs all their parameter sets as one batch and hands
-each fit its results.  The simulations themselves (Warp launches, progress callbacks) stay on the
-calling thread; the fits' own work between requests is small NumPy algebra.  A job may itself run jobs
+each fit its results.  The simulations themselves (Warp launches, progress callbacks) are run from the
+calling thread (which may share a batch's runs among threads of its own where the solver allows it:
+:meth:`.problem.Problem._run_now`); the fits' own work between requests is small NumPy algebra.  A job may itself run jobs
 side by side (a fit of two regions, say): they join the others while it waits for them.
 
 With a solver whose batched environments do not influence each other (MPM: each has its own time step)

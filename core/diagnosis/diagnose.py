@@ -134,7 +134,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     max_batch: parameter sets per ``run_batch`` launch (default 32; 1 for :data:`UNBATCHED_SOLVERS`).
     parallel: fit the candidates (and the held-out refits) side by side, their simulations joined into shared
     batches (:mod:`.batching`).  ``None``: on a GPU with a solver that batches (a batch of a few environments
-    costs about what one does there), off on the CPU (where a batch costs the sum of its environments).
+    costs about what one does there), and where the simulation's runs go on at once in threads
+    (:attr:`.Simulation.concurrent_runs`: the spring-mass solver on the CPU, a batch's runs shared among the cores,
+    :attr:`.problem.Problem.threads`); otherwise off (a batch costs the sum of its environments).
     With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
     round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
     differently.  resolution_budget_s: seconds of simulation the rest of the diagnosis may spend with a finer
@@ -191,7 +193,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     if max_batch is None:
         max_batch = 1 if solver in UNBATCHED_SOLVERS else 32
     if parallel is None:
-        parallel = solver not in UNBATCHED_SOLVERS and not str(getattr(sim, "device", device)).startswith("cpu")
+        parallel = ((solver not in UNBATCHED_SOLVERS and not str(getattr(sim, "device", device)).startswith("cpu"))
+                    or bool(getattr(sim, "concurrent_runs", False)))
     P = Problem(measurement, sim, effects_on, progress, max_batch, parallel=parallel)
     P.sigma = sigma
     sc = problem_scales(measurement, material)

@@ -20,12 +20,25 @@ import numpy as np
 
 from ...solvers import effects as fx
 from ..errors import SimulationDiverged
+from ..jobs import map_in_threads, usable_cores
 from ..progress import Progress
 from .batching import BatchGate
 from .fit import BASE_SCALE_BOUNDS, FreeParam, Parametrisation, base_param, free_params_for
 
 EVALUATIONS: contextvars.ContextVar = contextvars.ContextVar("unipixie_diagnosis_evaluations", default=None)
 """The simulation counter ([count]) of the fit running in this context (side-by-side fits inherit it)."""
+
+
+CONCURRENT_RUNS_PER_CORE = 1.5
+"""Runs in flight per CPU core where a solver's runs may go on at once (:attr:`.Simulation.concurrent_runs`): more
+than one, because part of every run is Python between its kernel launches (set-up, each frame's output), holding
+the interpreter lock.  Measured on the referee's clamped bar, eight damped runs on this 2-core CPU: 2.18× faster
+with 2 threads than one after another, 2.25× with 3 (with a launch per substep instead of per frame: 1.42×, 1.67×)."""
+
+
+def concurrent_run_threads() -> int:
+    """Threads that run a diagnosis's simulations at once where the solver allows it: ⌈1.5 × the usable cores⌉."""
+    return max(1, math.ceil(CONCURRENT_RUNS_PER_CORE * usable_cores()))
 
 
 class Problem:
@@ -39,6 +52,7 @@ class Problem:
         self.fixed = list(fixed)
         self.progress = progress
         self.max_batch = max(1, int(max_batch))
+        self.threads = concurrent_run_threads()
         self.measured = np.asarray(measurement.positions, dtype=np.float64)
         self.obs_all = measurement.observed
         self.window: Optional[np.ndarray] = None  # (T,) frames the fits use (None: all)
@@ -102,23 +116,37 @@ class Problem:
         return self.gate.map(jobs)
 
     def _run_now(self, effect_lists: list, sim) -> list:
-        out: list = []
-        for i in range(0, len(effect_lists), self.max_batch):
-            chunk = effect_lists[i:i + self.max_batch]
-            t0 = time.perf_counter()
+        """Run ``effect_lists`` in launches of at most :attr:`max_batch` environments; where the prepared simulation
+        allows it (:attr:`.Simulation.concurrent_runs`: the spring-mass solver on the CPU) the launches go on at once
+        in :attr:`threads` threads, each run the same as alone.  ``sim_seconds`` counts the wall time."""
+        chunks = [effect_lists[i:i + self.max_batch] for i in range(0, len(effect_lists), self.max_batch)]
+
+        def run_chunk(chunk: list) -> list:
             try:
-                trajs = sim.run_batch(chunk)
-                out.extend(np.asarray(t.positions, dtype=np.float64) for t in trajs)
+                return [np.asarray(t.positions, dtype=np.float64) for t in sim.run_batch(chunk)]
             except SimulationDiverged:
+                out = []
                 for effs in chunk:  # find the offending environment(s); the others still count
                     try:
                         out.append(np.asarray(sim.run(effs).positions, dtype=np.float64))
                     except SimulationDiverged:
                         out.append(np.full(self.measured.shape, np.nan))
-            self.sim_seconds += time.perf_counter() - t0
-            self.evaluations += len(chunk)
+                return out
+
+        t0 = time.perf_counter()
+        if len(chunks) > 1 and self.threads > 1 and getattr(sim, "concurrent_runs", False):
+            results = map_in_threads(run_chunk, chunks, self.threads)
+        else:
+            results = []
+            for chunk in chunks:
+                results.append(run_chunk(chunk))
+                self.progress.step(len(chunk))
+            chunks = []  # progress already counted
+        self.sim_seconds += time.perf_counter() - t0
+        self.evaluations += len(effect_lists)
+        for chunk in chunks:
             self.progress.step(len(chunk))
-        return out
+        return [positions for result in results for positions in result]
 
     def set_window(self, frames: np.ndarray) -> None:
         """Fit and test on the instants ``frames`` (T,) bool only (the predictive window)."""
