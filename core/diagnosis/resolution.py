@@ -9,8 +9,9 @@ collision points and mass samples, and half the time step) and the two trajector
 * they differ by no more than the noise (RMSE of 3-D distances ≤ the noise level √3 σ): the resolution is
   sufficient, nothing changes;
 * they differ by more, and a diagnosis with the finer model fits the time budget (the finer run's measured
-  cost × the simulations the diagnosis still needs, divided by the cores where the solver's runs go on at once,
-  :data:`DEFAULT_BUDGET_S`): the diagnosis uses the finer model from here on;
+  cost × the simulations the diagnosis still needs, :data:`DEFAULT_BUDGET_S`; the runs' cost one after another:
+  where they share the CPU's cores, :attr:`.problem.Problem.threads`, the wall time is about half that on 2
+  cores, and the budget is kept as it was measured against): the diagnosis uses the finer model from here on;
 * they differ by more and the finer model is too costly: the coarse model's **discretisation floor** (the RMSE
   between the two resolutions) is recorded, and no effect is called significant whose improvement is below the
   part of that floor it could be imitating (:func:`apply_floor`): with δ the change refinement makes (finer −
@@ -42,7 +43,6 @@ from typing import Optional
 
 import numpy as np
 
-from ..jobs import usable_cores
 from .compare import noise_rmse
 
 DEFAULT_BUDGET_S = 60.0
@@ -246,11 +246,8 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
         factor, fine = absorb_base_scale(P, effects_at, scale, coarse, fine, fine_sim, P.obs)
     floor = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
-    # runs that go on at once in threads (the spring-mass solver on the CPU) share the cores: at most that many at a time
-    at_once = min(int(getattr(P, "threads", 1)), usable_cores()) if getattr(fine_sim, "concurrent_runs", False) else 1
     check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
-                            predicted_seconds=t_fine * max(int(remaining_runs), 0) / max(at_once, 1),
-                            budget_s=float(budget_s),
+                            predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
                             settings=plain_settings(P.sim.settings), finer=plain_settings(fine_settings),
                             difference=diff if np.all(np.isfinite(diff)) else None,
                             floor_before_refit=same_E, finer_E_factor=factor)
