@@ -7,7 +7,9 @@ the forces on its own anchor (a block of lanes per anchor on a GPU): no atomics.
 two launches: :func:`spring_star_pass` computes each spring's force once, at the end that owns it
 (its one copy of the rest length, so plastic rest-length updates stay symmetric), and each
 anchor star's volumetric stress; :func:`spring_substep` gathers them (the other end takes the
-negative, which is exactly the force it would compute itself) and integrates.
+negative, which is exactly the force it would compute itself) and integrates.  On the CPU the same two passes
+run per anchor without tile operations (:func:`star_pass_anchor`, :func:`substep_anchor`), all the substeps of a
+frame in one launch (:func:`substep_pairs_serial`), so that runs in several threads may go on at once.
 """
 
 from __future__ import annotations
