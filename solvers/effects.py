@@ -318,8 +318,8 @@ class ContactDamping(Effect):
     params = (Param("c", "Pa·s/m", 2.0e4, 0.0, 1.0e8, "normal damping per unit contact area", log_scale=True),
               Param("k", "Pa/m", 1.0e6, 1.0e3, 1.0e11, "normal stiffness of the floor per unit contact area",
                     log_scale=True))
-
     acts_at_ground = True
+
     def apply(self, terms, ctx):
         terms.ground_stiffness = min(terms.ground_stiffness, self.values["k"])
         terms.ground_damping = max(terms.ground_damping, self.values["c"])

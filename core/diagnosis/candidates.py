@@ -23,7 +23,7 @@ from ...solvers import effects as fx
 from ..errors import UserError
 from ..progress import Progress
 from .compare import kmeans_regions, region_box
-from .contact_fit import touches_ground
+from .contact_fit import ground_gap, touches_ground
 from .fit import FitResult, Parametrisation, grid_search, levenberg_marquardt
 from .problem import EVALUATIONS, Problem, Reference, Scales, param_for
 from .results import CandidateResult
@@ -143,15 +143,12 @@ def not_applicable_effects(names: Sequence[str], measurement, sigma: float) -> d
     at_ground = [n for n in names if fx.get(n).acts_at_ground]
     if not at_ground:
         return out
-    ground = measurement.scenario.ground_height
-    if ground is None:
+    if measurement.scenario.ground_height is None:
         why = "the scenario has no ground"
     elif touches_ground(measurement, sigma):
         return out
     else:
-        z = measurement.positions[..., 2]
-        gap = np.nanmin(z) - ground if np.any(np.isfinite(z)) else math.inf
-        why = f"the solid never comes within {1e3 * gap:.0f} mm of the ground"
+        why = f"the solid never comes within {1e3 * ground_gap(measurement):.0f} mm of the ground"
     return {n: why for n in at_ground}
 
 

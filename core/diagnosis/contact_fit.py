@@ -54,16 +54,20 @@ STIFFNESS_STARTS = (0.01, 0.1, 1.0)
 reaches well below it so that a yielding floor is found where the fit is not flat."""
 
 
+def ground_gap(measurement) -> float:
+    """Height (m) of the measured solid's lowest observed point above the ground plane; infinite where the scenario
+    has no ground or no position is finite."""
+    ground = measurement.scenario.ground_height
+    z = np.asarray(measurement.positions)[..., 2]
+    if ground is None or not np.any(np.isfinite(z)):
+        return math.inf
+    return float(np.nanmin(z) - ground)
+
+
 def touches_ground(measurement, sigma: float) -> bool:
     """Does the measured solid come within reach of the ground plane (2 % of its size plus 5 σ)?"""
-    ground = measurement.scenario.ground_height
-    if ground is None:
-        return False
-    z = np.asarray(measurement.positions)[..., 2]
-    if not np.any(np.isfinite(z)):
-        return False
     size = float(np.linalg.norm(np.ptp(measurement.rest, axis=0)))
-    return bool(np.nanmin(z) - ground <= 0.02 * size + 5.0 * sigma)
+    return bool(ground_gap(measurement) <= 0.02 * size + 5.0 * sigma)
 
 
 def contact_scales(E: float, density: float, height: float) -> tuple[float, float]:

@@ -136,16 +136,14 @@ class Problem:
         t0 = time.perf_counter()
         if len(chunks) > 1 and self.threads > 1 and getattr(sim, "concurrent_runs", False):
             results = map_in_threads(run_chunk, chunks, self.threads)
+            self.progress.step(len(effect_lists))
         else:
             results = []
             for chunk in chunks:
                 results.append(run_chunk(chunk))
                 self.progress.step(len(chunk))
-            chunks = []  # progress already counted
         self.sim_seconds += time.perf_counter() - t0
         self.evaluations += len(effect_lists)
-        for chunk in chunks:
-            self.progress.step(len(chunk))
         return [positions for result in results for positions in result]
 
     def set_window(self, frames: np.ndarray) -> None:
