@@ -82,7 +82,13 @@ def test_hidden_effect_is_found(spec, tmp_path):
     gen, gen_settings, kw, *diag_settings = CASES[spec]
     truth = fx.parse(spec)
     m = synth.synthesize([truth], gen, settings=gen_settings, **{**COMMON, **kw})
-    d = diagnose.diagnose(m, "spring_mass", settings=(diag_settings or [DIAG])[0], max_additions=1)
+    # deterministic: never switch to the finer model.  The switch is decided by the finer runs' measured wall time
+    # against a 60 s budget, and these cases' estimates (64-125 s, 2026-11-29) come close enough to it that a fast
+    # moment of the machine switched the plastic bar to the finer network, which cannot reproduce a measurement
+    # made by the 64-anchor one (measured: 8.2 mm left); every case took the floor path, as it does here, when the
+    # suite passed.
+    d = diagnose.diagnose(m, "spring_mass", settings=(diag_settings or [DIAG])[0], max_additions=1,
+                          resolution_budget_s=0.0)
     if truth.name == "contact_damping":
         # the ground contact is part of the base model (core/diagnosis/contact_fit.py): its (c, k) are fitted with
         # E/ρ before any effect is judged, contact_damping is no candidate, and then nothing else is missing
