@@ -123,6 +123,24 @@ def test_two_benchmarks_recording_into_one_file_take_turns(tmp_path):
             atomic_io.OutputLock(path, "benchmark file", wait=0.2).acquire()  # waits, then refuses
 
 
+def test_each_benchmark_entry_keeps_the_commit_it_was_measured_at(tmp_path, monkeypatch):
+    """The file's ``commit`` is its latest write's; an entry recorded earlier keeps its own (a GPU figure is not
+    relabelled by a later CPU run), and an entry that names its commit keeps that one."""
+    from unipixie.core import benchmarks
+
+    path = tmp_path / "b.json"
+    entry = lambda case, **kw: {"case": case, "device": "cpu", "metric": "m", "value": 1.0, "runs": 1, **kw}  # noqa: E731
+    monkeypatch.setattr(benchmarks, "git_commit", lambda: "aaaaaaa")
+    benchmarks.record("b", [entry("gpu figure")], path)
+    monkeypatch.setattr(benchmarks, "git_commit", lambda: "bbbbbbb")
+    benchmarks.record("b", [entry("cpu figure"), entry("older code", commit="ccccccc")], path)
+    doc = json.loads(path.read_text())
+    assert doc["commit"] == "bbbbbbb"
+    assert {r["case"]: r["commit"] for r in doc["results"]} == {"gpu figure": "aaaaaaa", "cpu figure": "bbbbbbb",
+                                                               "older code": "ccccccc"}
+    assert all(r["date"] for r in doc["results"])
+
+
 def test_a_second_features_run_writing_the_same_grid_is_refused(tmp_path, capsys):
     obj = tmp_path / "cube.obj"
     obj.write_text("".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + "f 1 2 4 3\n")

@@ -10,6 +10,9 @@ result entries as ``shared/specs/benchmarks.md`` defines them::
 
 :func:`record` merges them into the JSON file: an entry replaces an earlier
 one only when case, device and metric are the same; everything else is kept.
+Each entry carries the ``commit`` and ``date`` it was measured at (given by the
+caller, else the checkout's HEAD and today); the file's own ``commit`` and
+``date`` are those of its latest write, not of every entry.
 The benchmarks share their timing (:func:`median_time`, :func:`synchronized_times`) and the jelly
 sphere drop that ``bench lbs`` and ``bench spring`` both measure (:func:`sphere_drop`, :func:`sphere_mesh`).
 """
@@ -62,14 +65,18 @@ def _merge(name: str, results: Iterable[dict], path: Path) -> Path:
         except json.JSONDecodeError:
             pass
     entries = list(old.get("results", []))
+    commit, today = git_commit(), _dt.date.today().isoformat()
     for r in results:
         missing = {"case", "device", "metric", "value", "runs"} - set(r)
         if missing:
             raise ValueError(f"benchmark entry lacks {sorted(missing)}: {r}")
         entries = [e for e in entries if (e.get("case"), e.get("device"), e.get("metric"))
                    != (r["case"], r["device"], r["metric"])]
-        entries.append(dict(r))
-    doc = {"benchmark": name, "commit": git_commit(), "date": _dt.date.today().isoformat(), "results": entries}
+        entry = dict(r)
+        entry.setdefault("commit", commit)
+        entry.setdefault("date", today)
+        entries.append(entry)
+    doc = {"benchmark": name, "commit": commit, "date": today, "results": entries}
     from ..atomic_io import write_json
 
     write_json(path, doc)
