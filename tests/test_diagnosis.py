@@ -142,8 +142,11 @@ def test_report_matches_the_spec_and_has_pictures(tmp_path):
     out = tmp_path / "report"
     # no --solver: the default picks the most faithful solver the device affords (spring-mass on the CPU)
     assert cli.main(["diagnose", str(mpath), "--out", str(out), "--setting", "anchors=96",
-                     "--max-additions", "1", "--candidates", "wind,linear_drag,plasticity", "--quiet"]) == 0
+                     "--max-additions", "1", "--candidates", "wind,linear_drag,plasticity", "--quiet",
+                     "--resolution-budget", "0"]) == 0
     doc = json.loads((out / "diagnosis.json").read_text())
+    assert doc["resolution"]["checked"] and doc["resolution"]["budget_s"] == 0.0  # the option reaches the check
+    assert not doc["resolution"]["used_finer"]
     assert doc["format"] == "unipixie.diagnosis/1" and doc["solver"] == "spring_mass"
     assert set(doc["baseline"]) >= {"rmse", "worst_points", "worst_times"}
     assert all(set(c) >= {"effect", "params", "rmse", "explained", "significant"} for c in doc["candidates"])

@@ -143,6 +143,26 @@ def test_the_floor_is_what_refinement_moves_beyond_a_different_e(offset):
     assert P.runs <= 2 + len(resolution.REFIT_FACTORS) + resolution.REFIT_PARABOLAS
 
 
+def test_the_budget_decides_finer_or_floor_and_the_verdict_says_which_machine_decided():
+    """A model unresolved by 4 mm: budget 0 enforces the floor and says so (the same on every machine); a budget the
+    finer runs fit uses the finer model and says the choice was this machine's speed; an unlimited one always
+    refines."""
+    P = _TwoResolutions(0.004)
+    check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                             remaining_runs=100, budget_s=0.0)
+    assert check.enforce_floor and use is None
+    assert "budget 0 s: the coarse model on every machine" in check.verdict and "would cost" not in check.verdict
+    P = _TwoResolutions(0.004)
+    check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                             remaining_runs=100, budget_s=3600.0)
+    assert check.used_finer and use is P.fine_sim
+    assert "measured on this machine" in check.verdict and "0 s enforces" in check.verdict
+    P = _TwoResolutions(0.004)
+    check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                             remaining_runs=10 ** 9, budget_s=math.inf)
+    assert check.used_finer and "budget unlimited" in check.verdict and check.to_dict()["budget_s"] is None
+
+
 def test_a_skipped_refit_is_said_and_its_floor_is_an_upper_bound(monkeypatch):
     """When the finer runs are too slow for the E/ρ refit (on a loaded CPU an MPM bar's finer run took 5.7 s, six
     of them over the 30 s allowed, and the floor came out 21.9 mm where the refit gives 4.7 mm), the verdict says the

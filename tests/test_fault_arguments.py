@@ -129,6 +129,29 @@ def test_commands_refuse_what_the_fault_matrix_found(argv, needle, tmp_path, cap
     assert not (tmp_path / "b.json").exists() and not (tmp_path / "ds").exists()
 
 
+@pytest.mark.parametrize("value", ["-1", "nan", "soon"])
+def test_a_resolution_budget_that_is_no_duration_is_refused(value, tmp_path, capsys):
+    """``--resolution-budget`` takes seconds, 0 or more (inf: no limit); anything else is refused in one line before
+    any work, and the Python API refuses it too."""
+    from unipixie import cli as root_cli
+    from unipixie.core.diagnosis import diagnose
+
+    _falling_cube().save(tmp_path / "m.npz")
+    try:
+        status = root_cli.main(["diagnose", str(tmp_path / "m.npz"), "--out", str(tmp_path / "rep"),
+                                "--resolution-budget", value])
+    except SystemExit as exc:
+        status = exc.code
+    err = capsys.readouterr().err
+    assert status == EXIT_BAD_INPUT and "--resolution-budget" in err and "seconds, 0 or more" in err, err
+    assert not (tmp_path / "rep").exists()
+    if value != "soon":
+        from unipixie.core.measurement import load
+
+        with pytest.raises(UserError, match="resolution_budget_s must be 0 or more seconds"):
+            diagnose.diagnose(load(tmp_path / "m.npz"), "spring_mass", resolution_budget_s=float(value))
+
+
 @pytest.mark.parametrize("argv", [
     ["diagnose", "m.npz", "--out", ""],                   # wrote the report into the current folder, said "/diagnosis.json"
     ["diagnose", "m.npz", "--out="],

@@ -39,6 +39,11 @@ def positive_number(text: str) -> float:
                    "a positive finite number", show_text=True)
 
 
+def non_negative_seconds(text: str) -> float:
+    """A duration in seconds, 0 or more; ``inf`` for no limit."""
+    return _number(text, float, lambda x: x >= 0.0, "a number of seconds, 0 or more (inf: no limit)", show_text=True)
+
+
 def non_negative_int(text: str) -> int:
     """A whole number 0 or more."""
     return _number(text, int, lambda x: x >= 0, "a whole number 0 or more")

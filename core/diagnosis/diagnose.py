@@ -140,7 +140,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     With ``max_batch`` 1 the results are identical either way; MPM batches agree with single runs to float
     round-off (its grid and sort schedule are shared by the batch), which can steer a fit slightly
     differently.  resolution_budget_s: seconds of simulation the rest of the diagnosis may spend with a finer
-    model when the fitted base model is not resolved (:mod:`.resolution`; 0: never switch, enforce the floor).
+    model when the fitted base model is not resolved (:mod:`.resolution`; 0: never switch, enforce the floor, the
+    same verdict on every machine; ``inf``: always switch).
     out_dir: write ``diagnosis.json``, the pictures and ``diagnosis.html`` there (checked for writing before
     any simulation).
     allow_long: accept measurements whose times look like milliseconds and diagnoses past the long-job
@@ -164,6 +165,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     picks = [fx.get(n).name for n in add]
     if max_additions < 0:
         raise UserError("max_additions must be 0 or more")
+    if not float(resolution_budget_s) >= 0.0:  # NaN fails too
+        raise UserError(f"resolution_budget_s must be 0 or more seconds (inf: no limit), got {resolution_budget_s!r}")
     max_additions = max(int(max_additions), len(picks))
     if measurement.frame_count < 4:
         raise UserError(f"{measurement.source or 'measurement'}: a diagnosis needs at least 4 instants, "

@@ -266,17 +266,28 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
         use = fine_sim
         check.verdict = (f"refined, the fitted base model moves by {moved}, more than the noise level "
                          f"{1e3 * level:.2f} mm: the diagnosis uses the finer model (predicted "
-                         f"{check.predicted_seconds:.0f} s of simulation, budget {budget_s:.0f} s)")
+                         f"{check.predicted_seconds:.0f} s of simulation, budget {_budget_words(budget_s)})")
     else:
         check.enforce_floor = True
+        cost = ("" if budget_s == 0.0 else
+                f", and the finer model would cost about {check.predicted_seconds:.0f} s "
+                f"(budget {_budget_words(budget_s)})")
         check.verdict = (f"refined, the fitted base model moves by {moved}, more than the noise level "
-                         f"{1e3 * level:.2f} mm, and the finer model would cost about {check.predicted_seconds:.0f} s "
-                         f"(budget {budget_s:.0f} s): the model's discretisation floor is {1e3 * floor:.2f} mm and no "
+                         f"{1e3 * level:.2f} mm{cost}: the model's discretisation floor is {1e3 * floor:.2f} mm and no "
                          "effect whose improvement is below the part of it the effect could imitate is called "
-                         "significant")
+                         "significant" + (" (resolution budget 0 s: the coarse model on every machine)"
+                                          if budget_s == 0.0 else ""))
     if say is not None:
         say("   resolution: " + check.verdict)
     return check, use
+
+
+def _budget_words(budget_s: float) -> str:
+    """The budget as the verdict states it: the choice it made depends on this machine's measured speed."""
+    if math.isinf(budget_s):
+        return "unlimited"
+    return (f"{budget_s:.0f} s, measured on this machine: a faster or slower one may choose otherwise; a budget "
+            "of 0 s enforces the coarse model's floor on every machine")
 
 
 def apply_floor(check: ResolutionCheck, candidates: list, residual_reference: np.ndarray, n_obs: int) -> None:
