@@ -156,7 +156,7 @@ def test_the_budget_decides_finer_or_floor_and_the_verdict_says_which_machine_de
     check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
                                              remaining_runs=100, budget_s=3600.0)
     assert check.used_finer and use is P.fine_sim
-    assert "measured on this machine" in check.verdict and "0 s enforces" in check.verdict
+    assert "follows this machine's speed" in check.verdict and "budget of 0 s makes it the same" in check.verdict
     P = _TwoResolutions(0.004)
     check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
                                              remaining_runs=10 ** 9, budget_s=math.inf)

@@ -286,8 +286,8 @@ def _budget_words(budget_s: float) -> str:
     """The budget as the verdict states it: the choice it made depends on this machine's measured speed."""
     if math.isinf(budget_s):
         return "unlimited"
-    return (f"{budget_s:.0f} s, measured on this machine: a faster or slower one may choose otherwise; a budget "
-            "of 0 s enforces the coarse model's floor on every machine")
+    return (f"{budget_s:.0f} s; the choice follows this machine's speed, and a budget of 0 s makes it the same "
+            "on every machine")
 
 
 def apply_floor(check: ResolutionCheck, candidates: list, residual_reference: np.ndarray, n_obs: int) -> None:
