@@ -126,6 +126,38 @@ def test_diagnosis_side_by_side_gives_the_same_result(monkeypatch):
     np.testing.assert_array_equal(alone.final_positions, one.final_positions)
 
 
+def test_the_ground_contact_descents_go_side_by_side_with_the_same_fit(monkeypatch):
+    """The ground-contact fit's descents (from its best starts) are independent: side by side they run in the
+    side-by-side jobs (on a GPU one shared batch a step instead of one launch per descent and step) and give
+    bitwise the contact, E/ρ and candidates of one descent after another."""
+    import threading
+
+    from unipixie.core.diagnosis import contact_fit
+
+    m = synth.synthesize(["contact_damping:c=3e4,k=1e6"], "spring_mass", settings={"anchors": 48}, shape="cube",
+                         scenario="drop", velocity=(0, 0, 0), height=0.1, noise=0.001, occlusion=0.1, points=60,
+                         duration=0.3, fps=40.0, seed=3)
+    threads = []
+    lm = contact_fit.levenberg_marquardt
+
+    def recording(*a, **k):
+        threads.append(threading.current_thread())
+        return lm(*a, **k)
+
+    monkeypatch.setattr(contact_fit, "levenberg_marquardt", recording)
+    kw = dict(settings={"anchors": 48}, max_additions=0, candidates=["linear_drag", "contact_damping"],
+              resolution_budget_s=0.0, predictive_window=False)
+    side = diagnose.diagnose(m, "spring_mass", parallel=True, **kw)
+    side_threads = list(threads)
+    threads.clear()
+    one = diagnose.diagnose(m, "spring_mass", parallel=False, **kw)
+    assert len(side_threads) >= 2 and len(threads) == len(side_threads)
+    assert threading.main_thread() not in side_threads and set(threads) == {threading.main_thread()}
+    assert side.base_contact["touches_ground"] and side.base_contact == one.base_contact
+    assert side.E_scale == one.E_scale
+    assert [(c.name, c.sse) for c in side.candidates] == [(c.name, c.sse) for c in one.candidates]
+
+
 def test_half_step_settings_halve_every_limit_of_the_step():
     """The half-time-step re-check halves MPM's wave-speed and viscous factors together (a damping run is
     limited by the viscous one), the spring-mass safety factor, and nothing of a solver without such a knob."""

@@ -183,10 +183,13 @@ def fit_contact(P, scale: float, e_prior_width: float, sse_rigid: float, materia
     order = [int(i) for i in np.argsort(costs) if np.isfinite(costs[i])]
     second = next((i for i in order if starts[i][2] != starts[best][2]), None)
     other_e = next((i for i in order if starts[i][0] != starts[best][0] and i != second), None)
+    # the descents are independent: side by side (one shared batch a step on a GPU, the cores shared on the CPU)
+    def descent(i: int):
+        return lambda: levenberg_marquardt(fn, starts[i], lo, hi, param.steps(), r0=res[i],
+                                           max_iter=2 * lm_iterations, progress=progress)
+
     fit: Optional[FitResult] = None
-    for i in [best] + [j for j in (second, other_e) if j is not None]:
-        trial = levenberg_marquardt(fn, starts[i], lo, hi, param.steps(), r0=res[i],
-                                    max_iter=2 * lm_iterations, progress=progress)
+    for trial in P.side_by_side([descent(i) for i in [best] + [j for j in (second, other_e) if j is not None]]):
         if fit is None or trial.cost < fit.cost:
             fit = trial
     E_scale, effs = param.realise(fit.u)
