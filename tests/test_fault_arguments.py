@@ -150,6 +150,9 @@ def test_a_resolution_budget_that_is_no_duration_is_refused(value, tmp_path, cap
 
         with pytest.raises(UserError, match="resolution_budget_s must be 0 or more seconds"):
             diagnose.diagnose(load(tmp_path / "m.npz"), "spring_mass", resolution_budget_s=float(value))
+    else:
+        with pytest.raises(UserError, match="resolution_budget_s must be 0 or more seconds"):
+            diagnose.diagnose(_falling_cube(), "spring_mass", resolution_budget_s=value)
 
 
 @pytest.mark.parametrize("argv", [

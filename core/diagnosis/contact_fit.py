@@ -183,6 +183,7 @@ def fit_contact(P, scale: float, e_prior_width: float, sse_rigid: float, materia
     order = [int(i) for i in np.argsort(costs) if np.isfinite(costs[i])]
     second = next((i for i in order if starts[i][2] != starts[best][2]), None)
     other_e = next((i for i in order if starts[i][0] != starts[best][0] and i != second), None)
+
     # the descents are independent: side by side (one shared batch a step on a GPU, the cores shared on the CPU)
     def descent(i: int):
         return lambda: levenberg_marquardt(fn, starts[i], lo, hi, param.steps(), r0=res[i],

@@ -166,8 +166,13 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     picks = [fx.get(n).name for n in add]
     if max_additions < 0:
         raise UserError("max_additions must be 0 or more")
-    if not float(resolution_budget_s) >= 0.0:  # NaN fails too
+    try:
+        budget_ok = float(resolution_budget_s) >= 0.0  # NaN fails too
+    except (TypeError, ValueError):
+        budget_ok = False
+    if not budget_ok:
         raise UserError(f"resolution_budget_s must be 0 or more seconds (inf: no limit), got {resolution_budget_s!r}")
+    resolution_budget_s = float(resolution_budget_s)
     max_additions = max(int(max_additions), len(picks))
     if measurement.frame_count < 4:
         raise UserError(f"{measurement.source or 'measurement'}: a diagnosis needs at least 4 instants, "
