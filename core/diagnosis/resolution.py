@@ -286,7 +286,7 @@ def _budget_words(budget_s: float) -> str:
     """The budget as the verdict states it: the choice it made depends on this machine's measured speed."""
     if math.isinf(budget_s):
         return "unlimited"
-    return (f"{budget_s:.0f} s; the choice follows this machine's speed, and a budget of 0 s makes it the same "
+    return (f"{budget_s:.3g} s; the choice follows this machine's speed, and a budget of 0 s makes it the same "
             "on every machine")
 
 
