@@ -600,11 +600,14 @@ class SpringMassSimulation(Simulation):
 
         serial = lanes == 1 and not use_graph  # CPU kernels without tile operations (concurrent_runs)
 
+        # the first pass's arrays after the state it reads (the same order in every kernel that runs the pass)
+        pass_arrays = [self._d_start, self._d_nbr, self._d_rest_vec, self._d_slot_start, self._d_slot_nbr,
+                       self._d_slot_he, d_rest, d_kappa, d_dash, d_yield, self._d_gram_inv, d_vol, d_force, d_stress,
+                       damped, plastic]
+
         def launch_pass(a, record_cmd=False):
             """Launch (or record) a substep's first pass (springs and stars) on buffer a's state."""
-            inputs = [bufs[a][0], bufs[a][1], self._d_start, self._d_nbr, self._d_rest_vec, self._d_slot_start,
-                      self._d_slot_nbr, self._d_slot_he, d_rest, d_kappa, d_dash, d_yield, self._d_gram_inv, d_vol,
-                      d_force, d_stress, damped, plastic]
+            inputs = [bufs[a][0], bufs[a][1], *pass_arrays]
             if serial:
                 return wp.launch(K.spring_star_pass_serial, dim=(n_env, n), inputs=inputs, device=dev,
                                  record_cmd=record_cmd)
@@ -623,9 +626,7 @@ class SpringMassSimulation(Simulation):
         cmds = []
         if serial:  # every substep pair of a frame in one launch, one thread per environment
             pairs_cmd = wp.launch(K.substep_pairs_serial, dim=(n_env,), device=dev, record_cmd=True, inputs=[
-                bufs[0][0], bufs[0][1], bufs[1][0], bufs[1][1], self._d_start, self._d_nbr, self._d_rest_vec,
-                self._d_slot_start, self._d_slot_nbr, self._d_slot_he, d_rest, d_kappa, d_dash, d_yield,
-                self._d_gram_inv, d_vol, d_force, d_stress, damped, plastic, self._d_inv_mass, self._d_rest_pos,
+                bufs[0][0], bufs[0][1], bufs[1][0], bufs[1][1], *pass_arrays, self._d_inv_mass, self._d_rest_pos,
                 d_accel, d_lin, d_quad, d_ground_law, d_contact_low, self._d_contact_area, d_rigid_k, d_rigid_c,
                 ground, has_ground, has_volume, 1e-4, 0])
         elif not use_graph:

@@ -8,6 +8,7 @@ from ...solvers.registry import SOLVER_NAMES
 from ._common import device as device_type
 from ._common import existing_file
 from ._common import non_negative_seconds
+from ..diagnosis.resolution import DEFAULT_BUDGET_S
 
 NAME = "diagnose"
 HELP = "compare the model with a measurement, find the missing physical effect, add it, watch the error fall"
@@ -98,9 +99,10 @@ def add_arguments(p):
                    help="fit the candidate effects side by side with their simulations batched together "
                         "(default: on a GPU with mpm/lbs and with spring_mass on the CPU, whose runs share the cores; "
                         "off for mpm/lbs on the CPU)")
-    p.add_argument("--resolution-budget", type=non_negative_seconds, default=None, metavar="SECONDS",
+    p.add_argument("--resolution-budget", type=non_negative_seconds, default=DEFAULT_BUDGET_S, metavar="SECONDS",
                    help="seconds of simulation the rest of the diagnosis may spend on a finer model when the "
-                        "resolution check finds the fitted base model moving by more than the noise (default 60: "
+                        f"resolution check finds the fitted base model moving by more than the noise (default "
+                        f"{DEFAULT_BUDGET_S:g}: "
                         "decided by this machine's speed; 0: never refine, enforce the coarse model's floor, the same "
                         "verdict on every machine; inf: always refine)")
     p.add_argument("--quiet", action="store_true", help="print only the result")
@@ -128,7 +130,6 @@ def run(args) -> int:
             raise UserError(f"--candidates {args.candidates!r}: no effect named; give comma-separated effect names "
                             "(e.g. wind,linear_drag) or leave the option out to try the whole registry")
     log = None if args.quiet else print
-    budget = {} if args.resolution_budget is None else {"resolution_budget_s": args.resolution_budget}
     with Progress(total=100, description="diagnose", show_bar=not args.quiet) as progress:
         if not args.quiet and args.solver == "auto":
             print(f"solver: {solver} (the most faithful on {device} within the time limits; --solver to choose)")
@@ -136,7 +137,7 @@ def run(args) -> int:
                                    max_additions=args.max_additions, device=device,
                                    settings=parse_settings(args.setting) or None, candidates=cands,
                                    parallel=args.parallel, allow_long=args.allow_long, progress=progress,
-                                   log=log, **budget)
+                                   log=log, resolution_budget_s=args.resolution_budget)
     print(result.summary())
     print(f"report: {args.out}/diagnosis.json, {args.out}/diagnosis.html")
     return 0
