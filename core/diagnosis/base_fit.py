@@ -49,9 +49,8 @@ def fit_base(P: Problem, param: Parametrisation, lm_iterations: int, progress: P
         starts.append(np.asarray(start, dtype=np.float64))
     best, costs, res = grid_search(deformation, starts)
     lo, hi = param.bounds()
-    # alone on the device: each LM batch is small, so the next Jacobian is evaluated with the trials (lookahead)
     dfit = levenberg_marquardt(deformation, starts[best], lo, hi, param.steps(), r0=res[best],
-                               max_iter=lm_iterations, progress=progress, lookahead=P.parallel)
+                               max_iter=lm_iterations, progress=progress)
     cands = [np.array([0.0]), np.asarray(dfit.u)] + ([np.asarray(start, dtype=np.float64)] if start is not None else [])
     full = []
     for u in cands:
@@ -62,7 +61,7 @@ def fit_base(P: Problem, param: Parametrisation, lm_iterations: int, progress: P
     hi2 = np.minimum(hi, math.log(4.0))
     u0 = np.clip(cands[k], lo2, hi2)
     bf = levenberg_marquardt(fn, u0, lo2, hi2, param.steps(), r0=full[k] if np.allclose(u0, cands[k]) else None,
-                             max_iter=lm_iterations, progress=progress, lookahead=P.parallel)
+                             max_iter=lm_iterations, progress=progress)
     return bf, bf.residual
 
 

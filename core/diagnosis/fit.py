@@ -206,17 +206,13 @@ def _difference_points(u: np.ndarray, lower: np.ndarray, upper: np.ndarray, step
 def levenberg_marquardt(residuals: ResidualBatch, u0: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                         steps: np.ndarray, *, r0: Optional[np.ndarray] = None, max_iter: int = 8,
                         ftol: float = 1e-3, progress: Optional[Progress] = None,
-                        damping: float = 1e-2, lookahead: bool = False) -> FitResult:
+                        damping: float = 1e-2) -> FitResult:
     """Projected Levenberg–Marquardt with batched finite differences (see the module docstring).
 
     residuals: maps a list of internal vectors to their residual vectors (metres).
     u0: start; lower / upper: internal bounds; steps: finite-difference steps (internal units).
     r0: the residual at ``u0`` when already known.  ftol: stop when an accepted step lowers the
     cost by less than this fraction.  damping: the initial λ (relative to diag(JᵀJ)).
-    lookahead: evaluate the finite-difference points around every trial step in the trials' batch, so that
-    the next iteration's Jacobian is ready when a trial is accepted: one batch per iteration instead of two
-    with (p + 1)× the simulations — for a fit alone on a GPU, where a small batch costs what one run does.
-    The iterates and the result are the same either way; only ``evaluations`` differs.
     """
     lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
@@ -234,18 +230,13 @@ def levenberg_marquardt(residuals: ResidualBatch, u0: np.ndarray, lower: np.ndar
         return FitResult(u, cost, r, None, evals, 0, True, trace)
     lam = float(damping)
     J = None
-    ready = None  # (steps, residuals at u + h_i e_i) evaluated ahead for the current u
     converged = False
     it = 0
     for it in range(1, max_iter + 1):
         # ---- Jacobian by forward differences, stepping inward at a bound
-        if ready is None:
-            h, pts = _difference_points(u, lower, upper, steps)
-            rs = residuals(pts)
-            evals += p
-        else:
-            h, rs = ready
-        ready = None
+        h, pts = _difference_points(u, lower, upper, steps)
+        rs = residuals(pts)
+        evals += p
         J = np.stack([(rs[i] - r) / h[i] for i in range(p)], axis=1)
         g = J.T @ r
         H = J.T @ J
@@ -270,10 +261,8 @@ def levenberg_marquardt(residuals: ResidualBatch, u0: np.ndarray, lower: np.ndar
             v = u.copy()
             v[free] += delta
             trials.append(np.clip(v, lower, upper))
-        ahead = [_difference_points(v, lower, upper, steps) for v in trials] if lookahead else []
-        out = residuals(trials + [q for _, pts in ahead for q in pts])
-        rt = out[:len(trials)]
-        evals += len(out)
+        rt = residuals(trials)
+        evals += len(trials)
         costs = [float(x @ x) if np.all(np.isfinite(x)) else math.inf for x in rt]
         best = int(np.argmin(costs))
         if progress is not None:
@@ -282,9 +271,6 @@ def levenberg_marquardt(residuals: ResidualBatch, u0: np.ndarray, lower: np.ndar
             rel = (cost - costs[best]) / max(cost, 1e-300)
             step_size = float(np.max(np.abs(trials[best] - u) / np.maximum(np.abs(steps), 1e-12)))
             u, r, cost = trials[best], rt[best], costs[best]
-            if lookahead:
-                at = len(trials) + best * p
-                ready = (ahead[best][0], out[at:at + p])
             lam = max(lams[best] * 0.3, 1e-7)
             trace.append(cost)
             if rel < ftol or step_size < 0.05:

@@ -44,9 +44,13 @@ def concurrent_run_threads() -> int:
 class Problem:
     """The measurement, the prepared simulation and the residual evaluation shared by all fits."""
 
-    def __init__(self, measurement, sim, fixed: list, progress: Progress, max_batch: int, parallel: bool = True):
+    def __init__(self, measurement, sim, fixed: list, progress: Progress, max_batch: int, parallel: bool = True,
+                 device_batches: bool = False):
         self.m = measurement
         self.parallel = bool(parallel)
+        # the runs of a launch share a GPU (a batched solver there): a few more parameter sets in a launch cost little,
+        # so a check whose result may go unused is worth running early, its runs joined to other fits' launches
+        self.device_batches = bool(device_batches) and self.parallel
         self.gate = BatchGate(self._run_now)
         self.sim = sim
         self.fixed = list(fixed)
