@@ -81,8 +81,8 @@ launch (on the CPU this costs nothing: the batched spring-mass kernel scales lin
 DEFAULT_SOLVER = {"cuda": "mpm", "cpu": "spring_mass"}
 """The diagnosis's solver when none is chosen, per device kind: the most faithful one the device affords within
 the diagnosis's time limits (docs/fidelity.md, docs/diagnosis.md): on a GPU MPM (the drop's rebound +2 % against
-the independent referee, spring-mass +16 %, LBS +17 %; a full MPM diagnosis 22.5 s on an H100 for a throw, 33–44 s
-for a drop or a bounce on an H200), on the CPU
+the independent referee, spring-mass +16 %, LBS +17 %; a full MPM diagnosis of the referee's cases 6–27 s on an
+H200, 30–34 s for the three hardest drops; both solvers pass 15 of its 20 cases), on the CPU
 spring-mass (an MPM diagnosis there takes far past 2 minutes; spring-mass is the closer of the other two on the
 cantilevers' sag, −6/−7 % against LBS's −18/−19 %)."""
 
