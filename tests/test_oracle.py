@@ -118,6 +118,35 @@ def test_the_conditional_mean_beats_the_midpoint_and_a_shifted_guess_on_fresh_la
     assert np.array_equal(refs[O.ORACLE]["material"][0], A.part_table(ann)["material"][part])
 
 
+def test_the_surface_reference_reads_the_outer_surface_parts_straight_inward():
+    """``oracle_surface_parts`` agrees with ``oracle_appearance`` on the outer surface; inside, each voxel takes the
+    part of its nearest surface voxel (checked by brute force), so a buried part is never predicted."""
+    from unipixie.core.lift import surface_mask
+
+    obj, ann = _object(4)
+    names = ann.part_names
+    hid = len(names) - 1
+    part, idx = _layout(len(names), hidden=(hid,))
+    refs = O.oracle_predictions(ann, part, idx, R, [0.0, 1.0], O.OracleSettings(draws=200, seed=1))
+    surf, full = refs[O.ORACLE_SURFACE], refs[O.ORACLE]
+    occ = np.zeros((R,) * 3, bool)
+    occ[tuple(idx.T)] = True
+    on_surface = surface_mask(occ)[tuple(idx.T)]
+    d2 = ((idx[:, None, :] - idx[None, on_surface, :]) ** 2).sum(-1)
+    expected = O.nearest_surface_parts(part, idx, R)
+    nearest = d2 == d2.min(axis=1, keepdims=True)   # each voxel's nearest surface voxels (ties included)
+    assert np.all([np.any(part[on_surface][nearest[k]] == expected[k]) for k in range(len(idx))])
+    np.testing.assert_array_equal(expected[on_surface], part[on_surface])
+    assert not np.any(expected == hid) and np.any(part == hid)
+    for key in ("log10_E", "log10_density", "nu", "material"):
+        np.testing.assert_array_equal(surf[key][:, on_surface], full[key][:, on_surface])
+    # inside, the values are those the full reference gives the nearest surface voxel's part
+    first_voxel_of = {p: int(np.argmax(part == p)) for p in np.unique(expected)}
+    cols = [first_voxel_of[p] for p in expected]
+    np.testing.assert_array_equal(surf["log10_E"], full["log10_E"][:, cols])
+    assert not np.array_equal(surf["log10_E"][:, part == hid], full["log10_E"][:, part == hid])
+
+
 def test_bad_inputs_are_refused():
     obj, ann = _object(1)
     part, idx = _layout(len(ann.part_names))

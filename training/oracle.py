@@ -20,6 +20,13 @@ models:
 ``oracle_appearance_midpoint``
     The same knowledge, but blind to α: it predicts the conditional mean of the range's midpoint at
     every α — the best that any deterministic α = 0.5 predictor (the PIXIE-style U-Net) can do.
+``oracle_surface_parts``
+    Knows what ``oracle_appearance`` knows except the part layout *inside* the solid, which no render shows:
+    every voxel takes the part of the nearest voxel on the outer surface (a hidden part is never predicted),
+    and that part's conditional mean at α.  Not a floor — a model may learn the generator's layouts (a
+    ball's core, a pot's soil) from the shapes and do better — but what reading the renders' parts straight
+    inward reaches: the gap between it and ``oracle_appearance`` is the part of the floor that needs knowledge
+    of the interior.
 
 The conditional means are Monte-Carlo averages over ``draws`` fresh annotations from the generator's own
 :func:`.annotation.sample_annotation` (constraint re-draws included), with the hidden parts' codes drawn
@@ -44,11 +51,14 @@ from ..core import annotation as ann_mod
 
 ORACLE = "oracle_appearance"
 ORACLE_MIDPOINT = "oracle_appearance_midpoint"
+ORACLE_SURFACE = "oracle_surface_parts"
 REFERENCES = {
     ORACLE: "knows each voxel's part, the class and every visible part's appearance code; predicts the "
             "conditional mean of the label at α (the lowest MSE any model trained on these labels can reach)",
     ORACLE_MIDPOINT: "the same knowledge, blind to α: the conditional mean of the range's midpoint (the best "
                      "any deterministic α = 0.5 predictor can do)",
+    ORACLE_SURFACE: "the same knowledge except the parts inside the solid: each voxel takes the part of the "
+                    "nearest outer-surface voxel (what the renders show, read straight inward; not a floor)",
 }
 """Reference name -> what it knows and predicts (shown in the evaluation report)."""
 
@@ -83,6 +93,27 @@ def visible_parts(part_ids: np.ndarray, indices: np.ndarray, resolution: int) ->
     on_surface = surface_mask(occ)[idx[:, 0], idx[:, 1], idx[:, 2]]
     count = int(part_ids.max()) + 1 if len(part_ids) else 0
     return np.bincount(part_ids[on_surface], minlength=count) > 0
+
+
+def nearest_surface_parts(part_ids: np.ndarray, indices: np.ndarray, resolution: int) -> np.ndarray:
+    """(K,) int: for each occupied voxel, the part of the nearest voxel on the occupied grid's outer surface (itself
+    when it is on the surface; among equally near ones, the one the k-d tree returns — the same every time).
+
+    part_ids: (K,) int part of each occupied voxel; indices: (K, 3) int voxel indices; resolution: grid side.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..core.lift import surface_mask
+
+    idx = np.asarray(indices, np.int64)
+    part_ids = np.asarray(part_ids, np.int64)
+    if len(idx) == 0:
+        return part_ids.copy()
+    occ = np.zeros((resolution,) * 3, bool)
+    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    on_surface = surface_mask(occ)[idx[:, 0], idx[:, 1], idx[:, 2]]
+    _, nearest = cKDTree(idx[on_surface]).query(idx)
+    return part_ids[on_surface][nearest]
 
 
 def generator_codes(annotation) -> tuple[str, str, dict]:
@@ -136,7 +167,7 @@ def part_label_moments(semantic_class: str, variant: str, codes: dict, hidden: s
 
 def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, resolution: int, alphas,
                        settings: OracleSettings | None = None, codes: dict | None = None) -> dict:
-    """Both references' predictions for one procedural object, in the evaluation's saved format.
+    """The references' predictions for one procedural object, in the evaluation's saved format.
 
     annotation: the object's stored :class:`~.annotation.Annotation`; part_ids: (K,) part of each occupied
     voxel (index into ``annotation.part_names``); indices: (K, 3) voxel indices; alphas: (A,) values.
@@ -160,16 +191,18 @@ def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, re
     moments = part_label_moments(semantic_class, variant, codes, hidden, settings.draws, rng)
     a = np.asarray(alphas, np.float64)
     seconds = time.perf_counter() - t0
+    seen_from_outside = nearest_surface_parts(part_ids, indices, resolution)
     out = {}
-    for name in (ORACLE, ORACLE_MIDPOINT):
-        d = {"alphas": a, "material": np.tile(moments["material"][part_ids], (len(a), 1)).astype(np.int16),
+    for name in (ORACLE, ORACLE_MIDPOINT, ORACLE_SURFACE):
+        voxel_part = seen_from_outside if name == ORACLE_SURFACE else part_ids
+        d = {"alphas": a, "material": np.tile(moments["material"][voxel_part], (len(a), 1)).astype(np.int16),
              "runtime_s": np.float64(seconds)}
         for q, key in _CHANNELS.items():
             lo, hi = moments[q]
-            if name == ORACLE:
-                per_part = (1.0 - a)[:, None] * lo[None] + a[:, None] * hi[None]        # (A, P)
-            else:
+            if name == ORACLE_MIDPOINT:
                 per_part = np.tile(0.5 * (lo + hi), (len(a), 1))
-            d[key] = per_part[:, part_ids].astype(np.float32)
+            else:
+                per_part = (1.0 - a)[:, None] * lo[None] + a[:, None] * hi[None]        # (A, P)
+            d[key] = per_part[:, voxel_part].astype(np.float32)
         out[name] = d
     return out
