@@ -112,8 +112,9 @@ def report_markdown(r: dict) -> str:
                  f"{m['logrho_mse_std']:.3f} | {m['nu_mse']:.5f} ± {m['nu_mse_std']:.4f} | "
                  f"{100 * m['material_acc']:.1f} % | {m['runtime_s']:.3f} |")
     if refs:
-        L += ["", "References (not methods: they know what no image shows, and bound what any model can reach on "
-                  "these labels; training/oracle.py):"] + [f"- *{k}*: {v['description']}" for k, v in refs.items()]
+        L += ["", "References (not methods: computed from the generator's own priors with knowledge no image gives; "
+                  "each says what it knows, and oracle_appearance bounds what any model can reach on these labels; "
+                  "training/oracle.py):"] + [f"- *{k}*: {v['description']}" for k, v in refs.items()]
     elif r.get("references_skipped"):
         L += ["", f"Reference predictors not computed: {r['references_skipped']}"]
     L += ["", "Mean log E over the object non-decreasing in α: " + ", ".join(
