@@ -203,9 +203,12 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
 
     # the reference predictors (training/oracle.py): scored by the same code, kept apart from the methods
     refs = report["references"]
-    assert set(refs) == {"oracle_appearance", "oracle_appearance_midpoint"} and report["references_skipped"] is None
+    assert set(refs) == {"oracle_appearance", "oracle_appearance_midpoint", "oracle_surface_parts"}
+    assert report["references_skipped"] is None
     assert refs["oracle_appearance"]["material_acc"] == 1.0
     assert refs["oracle_appearance"]["logE_mse"] < refs["oracle_appearance_midpoint"]["logE_mse"]
+    # not knowing the layout inside the solid can only cost: never below the floor's reference
+    assert refs["oracle_surface_parts"]["logE_mse"] >= refs["oracle_appearance"]["logE_mse"]
     assert "*oracle_appearance* (reference)" in (out / "report.md").read_text()
 
     # the report's numbers, recomputed here from the raw predictions
