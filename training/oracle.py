@@ -85,14 +85,20 @@ def visible_parts(part_ids: np.ndarray, indices: np.ndarray, resolution: int) ->
     voxels; resolution: grid side.  A part none of whose voxels touches empty space (or the grid's edge)
     cannot be seen in any view.
     """
-    from ..core.lift import surface_mask
-
-    occ = np.zeros((resolution,) * 3, bool)
-    idx = np.asarray(indices, np.int64)
-    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    on_surface = surface_mask(occ)[idx[:, 0], idx[:, 1], idx[:, 2]]
+    on_surface = on_outer_surface(indices, resolution)
     count = int(part_ids.max()) + 1 if len(part_ids) else 0
     return np.bincount(part_ids[on_surface], minlength=count) > 0
+
+
+def on_outer_surface(indices: np.ndarray, resolution: int) -> np.ndarray:
+    """(K,) bool: which of the occupied voxels ``indices`` (K, 3) int lie on the occupied grid's outer surface (a face
+    towards empty space or the grid's edge; :func:`unipixie.core.lift.surface_mask`).  resolution: grid side."""
+    from ..core.lift import surface_mask
+
+    idx = np.asarray(indices, np.int64)
+    occ = np.zeros((resolution,) * 3, bool)
+    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    return surface_mask(occ)[idx[:, 0], idx[:, 1], idx[:, 2]]
 
 
 def nearest_surface_parts(part_ids: np.ndarray, indices: np.ndarray, resolution: int) -> np.ndarray:
@@ -103,15 +109,11 @@ def nearest_surface_parts(part_ids: np.ndarray, indices: np.ndarray, resolution:
     """
     from scipy.spatial import cKDTree
 
-    from ..core.lift import surface_mask
-
     idx = np.asarray(indices, np.int64)
     part_ids = np.asarray(part_ids, np.int64)
     if len(idx) == 0:
         return part_ids.copy()
-    occ = np.zeros((resolution,) * 3, bool)
-    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    on_surface = surface_mask(occ)[idx[:, 0], idx[:, 1], idx[:, 2]]
+    on_surface = on_outer_surface(idx, resolution)
     _, nearest = cKDTree(idx[on_surface]).query(idx)
     return part_ids[on_surface][nearest]
 

@@ -201,11 +201,11 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     names = [n for n in names if solver in fx.get(n).solvers]
     if max_batch is None:
         max_batch = 1 if solver in UNBATCHED_SOLVERS else 32
-    on_device = not str(getattr(sim, "device", device)).startswith("cpu")
+    # a batched solver on a GPU: its runs share launches there
+    device_batches = solver not in UNBATCHED_SOLVERS and not str(getattr(sim, "device", device)).startswith("cpu")
     if parallel is None:
-        parallel = (solver not in UNBATCHED_SOLVERS and on_device) or bool(getattr(sim, "concurrent_runs", False))
-    P = Problem(measurement, sim, effects_on, progress, max_batch, parallel=parallel,
-                device_batches=on_device and solver not in UNBATCHED_SOLVERS)
+        parallel = device_batches or bool(getattr(sim, "concurrent_runs", False))
+    P = Problem(measurement, sim, effects_on, progress, max_batch, parallel=parallel, device_batches=device_batches)
     P.sigma = sigma
     sc = problem_scales(measurement, material)
     # progress total is a rough count of simulations
