@@ -167,6 +167,26 @@ def part_label_moments(semantic_class: str, variant: str, codes: dict, hidden: s
     return out
 
 
+def visible_part_moments(annotation, part_ids: np.ndarray, indices: np.ndarray, resolution: int,
+                         settings: OracleSettings | None = None, codes: dict | None = None) -> dict:
+    """The references' per-part conditional means (:func:`part_label_moments`) for one procedural object: the codes
+    of the parts with a voxel on the outer surface known, those of the others drawn, ``settings.draws`` draws seeded
+    by ``settings.seed`` and the object's index.
+
+    part_ids: (K,) int part of each occupied voxel; indices: (K, 3) int voxel indices; resolution: grid side;
+    codes: part -> appearance code used in place of the generator's for those parts (None: the generator's own).
+    Returns what :func:`part_label_moments` returns, (P,) per part in the annotation's order.
+    """
+    settings = settings or OracleSettings()
+    names = annotation.part_names
+    semantic_class, variant, true_codes = generator_codes(annotation)
+    codes = {**true_codes, **(codes or {})}
+    seen = visible_parts(np.asarray(part_ids, np.int64), indices, resolution)
+    hidden = {n for i, n in enumerate(names) if i >= len(seen) or not seen[i]}
+    rng = np.random.default_rng([int(settings.seed), int((annotation.meta or {}).get("index", 0))])
+    return part_label_moments(semantic_class, variant, codes, hidden, settings.draws, rng)
+
+
 def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, resolution: int, alphas,
                        settings: OracleSettings | None = None, codes: dict | None = None) -> dict:
     """The references' predictions for one procedural object, in the evaluation's saved format.
@@ -185,12 +205,7 @@ def oracle_predictions(annotation, part_ids: np.ndarray, indices: np.ndarray, re
     if len(part_ids) and (part_ids.min() < 0 or part_ids.max() >= len(names)):
         raise UserError(f"part labels outside 0..{len(names) - 1} (the annotation has parts {', '.join(names)})")
     t0 = time.perf_counter()
-    semantic_class, variant, true_codes = generator_codes(annotation)
-    codes = {**true_codes, **(codes or {})}
-    seen = visible_parts(part_ids, indices, resolution)
-    hidden = {n for i, n in enumerate(names) if i >= len(seen) or not seen[i]}
-    rng = np.random.default_rng([int(settings.seed), int((annotation.meta or {}).get("index", 0))])
-    moments = part_label_moments(semantic_class, variant, codes, hidden, settings.draws, rng)
+    moments = visible_part_moments(annotation, part_ids, indices, resolution, settings, codes)
     a = np.asarray(alphas, np.float64)
     seconds = time.perf_counter() - t0
     seen_from_outside = nearest_surface_parts(part_ids, indices, resolution)
