@@ -182,14 +182,17 @@ def test_train_two_steps_then_evaluate(built, tmp_path):
                 "--device", "cpu", "--simulate-objects", "1", "--render-frames", "1", "--render-views", "1",
                 "--render-resolution", "48"]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert set(report["methods"]) == {"unipixie", "unipixie_mean", "unet_deterministic"}
+    # the product's sampler (the deterministic path) and the paper's (one draw from the model, 'unipixie_t1')
+    assert set(report["methods"]) == {"unipixie", "unipixie_mean", "unipixie_t1", "unet_deterministic"}
     for m in report["methods"].values():
         assert set(m) == {"logE_mse", "logrho_mse", "nu_mse", "material_acc", "runtime_s"}
     # Table 2 ran every solver for the first test object
     rows = {(r["solver"], r["method"]) for r in report["table2"]}
-    assert {("mpm", "unipixie"), ("mpm", "unipixie_mean"), ("mpm", "unet_deterministic"), ("lbs", "unipixie"), ("spring_mass", "unipixie"),
+    assert {("mpm", "unipixie"), ("mpm", "unipixie_mean"), ("mpm", "unipixie_t1"), ("mpm", "unet_deterministic"),
+            ("lbs", "unipixie"), ("spring_mass", "unipixie"),
             ("lbs", "test_time_fit"), ("spring_mass", "test_time_fit")} <= rows
     assert all(r["rmse_m"] is not None and r["psnr"] is not None for r in report["table2"] if r["method"] == "unipixie")
+    assert all(r["rmse_m"] is not None for r in report["table2"] if r["method"] == "unipixie_t1")  # simulated too
     # the per-object rows are kept and summarised by class (where a solver cannot follow the MPM motion)
     first = report["table2_objects"][0]
     cls = json.loads((built / "objects" / first / "record.json").read_text())["semantic_class"]

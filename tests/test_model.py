@@ -128,22 +128,24 @@ def test_decoder_ignores_noisy_targets_at_unoccupied_slots_and_padding():
 
 
 def test_prediction_shapes_determinism_and_shared_noise():
+    """Draws from the model (temperature 1): deterministic for a seed, another seed another draw, one noise for
+    every α of a request."""
     p = Predictor(_model())
     g = _grid()
     K = int(g.occupancy.sum())
-    pred = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4)
+    pred = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4, temperature=1.0)
     assert len(pred.mpm) == len(pred.lbs) == len(pred.spring_mass) == 3
     for i, m in enumerate(pred.mpm):
         assert isinstance(m, MaterialField) and m.E.shape == (K,) and m.alpha == [0.0, 0.5, 1.0][i]
         assert np.all((m.material >= 0) & (m.material < NUM_CLASSES))
     assert pred.lbs[0].params.shape == (LBS_PARAM_COUNT,) and pred.lbs[0].E.shape == (K,)
     assert pred.spring_mass[2].stiffness.shape == (ANCHORS,) and np.isfinite(pred.spring_mass[2].softness)
-    again = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4)
+    again = p.predict(g, [0.0, 0.5, 1.0], seed=3, steps=4, temperature=1.0)
     assert np.array_equal(again.mpm[1].E, pred.mpm[1].E) and np.array_equal(again.spring_mass[0].stiffness,
                                                                              pred.spring_mass[0].stiffness)
-    other = p.predict(g, [0.5], seed=4, steps=4, heads="mpm")
+    other = p.predict(g, [0.5], seed=4, steps=4, heads="mpm", temperature=1.0)
     assert not np.allclose(other.mpm[0].E, pred.mpm[1].E)
-    single = p.predict(g, [0.5], seed=3, steps=4)  # one α alone == the same α inside the batch (shared noise)
+    single = p.predict(g, [0.5], seed=3, steps=4, temperature=1.0)  # one α alone == the same α inside the batch (shared noise)
     assert np.allclose(np.log10(single.mpm[0].E), np.log10(pred.mpm[1].E), atol=1e-4)
     assert np.allclose(single.spring_mass[0].stiffness, pred.spring_mass[1].stiffness, rtol=1e-4)
     only = p.predict(g, [0.5], seed=3, steps=4, heads=("lbs",))
@@ -155,10 +157,10 @@ def test_averaged_samples_are_the_mean_of_the_draws_in_log_units():
     log), of the K one-draw predictions with seeds seed … seed + K − 1; K = 1 is the one-draw prediction itself."""
     p = Predictor(_model())
     g = _grid()
-    draws = [p.predict(g, [0.0, 1.0], seed=3 + j, steps=3) for j in range(3)]
-    one = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=1)
+    draws = [p.predict(g, [0.0, 1.0], seed=3 + j, steps=3, temperature=1.0) for j in range(3)]
+    one = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=1, temperature=1.0)
     assert np.array_equal(one.mpm[1].E, draws[0].mpm[1].E) and one.meta["samples"] == 1
-    avg = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=3)
+    avg = p.predict(g, [0.0, 1.0], seed=3, steps=3, samples=3, temperature=1.0)
     assert avg.meta["samples"] == 3
     for i in range(2):
         logE = np.mean([np.log10(d.mpm[i].E) for d in draws], axis=0)
@@ -171,7 +173,42 @@ def test_averaged_samples_are_the_mean_of_the_draws_in_log_units():
     assert spread.max() > 1e-3                     # the draws differ, so the average is not any one of them
     for bad in (0, -1, 2.5, True, 10 ** 6):
         with pytest.raises(UserError, match="samples"):
-            p.predict(g, [0.5], samples=bad)
+            p.predict(g, [0.5], samples=bad, temperature=1.0)
+
+
+def test_temperature_scales_the_starting_noise_and_zero_is_one_deterministic_path():
+    """x(0) = τ·ε: at τ = 0 every seed gives the same prediction, which is the flow integrated from the noise's mean
+    (a zero start); at τ = 1 seeds differ; in between the start is the scaled draw.  τ is recorded, checked, and
+    averaging draws at τ = 0 is refused (every draw would be the same)."""
+    from unipixie.core.model import inference
+
+    p = Predictor(_model())
+    g = _grid()
+    zero = [p.predict(g, [0.0, 1.0], seed=s, steps=3, temperature=0.0) for s in (3, 4)]
+    for head in ("mpm", "lbs", "spring_mass"):
+        a, b = getattr(zero[0], head)[1], getattr(zero[1], head)[1]
+        assert np.array_equal(a.E if head != "spring_mass" else a.stiffness, b.E if head != "spring_mass" else b.stiffness)
+    assert zero[0].meta["temperature"] == 0.0
+    assert inference.DEFAULT_TEMPERATURE == 0.0                       # the product's sampler (models/default card)
+    default = p.predict(g, [0.0, 1.0], seed=9, steps=3)
+    assert np.array_equal(default.mpm[1].E, zero[0].mpm[1].E)
+    ones = [p.predict(g, [1.0], seed=s, steps=3, temperature=1.0, heads="mpm") for s in (3, 4)]
+    assert not np.allclose(np.log10(ones[0].mpm[0].E), np.log10(ones[1].mpm[0].E), atol=1e-3)
+    # τ = ½ is the τ = 1 draw's noise halved: the same as scaling the generator's noise by hand
+    half = p.predict(g, [1.0], seed=3, steps=3, temperature=0.5, heads="mpm")
+    orig = Predictor._noise
+    try:
+        Predictor._noise = lambda self, seed, head, shape: orig(self, seed, head, shape) * 0.5
+        by_hand = p.predict(g, [1.0], seed=3, steps=3, temperature=1.0, heads="mpm")
+    finally:
+        Predictor._noise = orig
+    assert np.allclose(np.log10(half.mpm[0].E), np.log10(by_hand.mpm[0].E), atol=1e-5)
+    assert not np.allclose(np.log10(half.mpm[0].E), np.log10(ones[0].mpm[0].E), atol=1e-3)
+    for bad in (-0.1, 1.5, float("nan"), "hot", True):
+        with pytest.raises(UserError, match="temperature"):
+            p.predict(g, [0.5], temperature=bad)
+    with pytest.raises(UserError, match="temperature > 0"):
+        p.predict(g, [0.5], samples=2, temperature=0.0)
 
 
 def test_bf16_autocast_path_matches_fp32():
@@ -303,10 +340,15 @@ def test_predict_sweep_is_cached_and_refine_matches_exact(tmp_path):
     s1 = predict_sweep(p, g, count=5, seed=2, steps=3)
     s2 = predict_sweep(p, g, count=5, seed=2, steps=3)
     assert len(calls) == 1 and np.array_equal(s1.log10_E, s2.log10_E)
-    s3 = predict_sweep(p, g, count=5, seed=2, steps=3, samples=2)       # another estimate: not the cached one
+    s3 = predict_sweep(p, g, count=5, seed=2, steps=3, samples=2, temperature=1.0)  # another estimate: not cached
     assert len(calls) == 2 and not np.array_equal(s3.log10_E, s1.log10_E)
+    s4 = predict_sweep(p, g, count=5, seed=2, steps=3, temperature=1.0)  # a draw, not the deterministic path
+    assert len(calls) == 3 and not np.array_equal(s4.log10_E, s1.log10_E)
+    assert s1.meta["temperature"] == 0.0 and s4.meta["temperature"] == 1.0
     exact = s1.refine(p, g, 0.5, heads=("mpm",))  # 0.5 is a cached α: refine reproduces it
     assert np.allclose(np.log10(exact.mpm[0].E), s1.log10_E[2], atol=1e-4)
+    drawn = s4.refine(p, g, 0.5, heads=("mpm",))  # with the sweep's own temperature
+    assert np.allclose(np.log10(drawn.mpm[0].E), s4.log10_E[2], atol=1e-4)
     assert s1.spring_at(0.6).stiffness.shape == (ANCHORS,) and s1.lbs_at(0.6).params.shape == (LBS_PARAM_COUNT,)
 
 
@@ -324,6 +366,11 @@ def test_predict_command(tmp_path):
     assert main(["predict", str(gpath), "--checkpoint", str(tmp_path / "ck"), "--alpha", "1", "--steps", "2",
                  "--samples", "2", "--device", "cpu", "--out", str(avg)]) == 0
     assert json.loads((avg / "prediction.json").read_text())["samples"] == 2
+    assert json.loads((avg / "prediction.json").read_text())["temperature"] == 1.0  # K draws: draws from the model
+    assert json.loads((out / "prediction.json").read_text())["temperature"] == 0.0  # the default path
+    for bad in (["--temperature", "2"], ["--samples", "2", "--temperature", "0"]):  # a clear error, exit 2
+        assert main(["predict", str(gpath), "--checkpoint", str(tmp_path / "ck"), "--alpha", "1", "--steps", "2",
+                     "--device", "cpu", "--out", str(tmp_path / "bad")] + bad) == 2
     one_draw = MaterialField.load(out / "material_field_a1.000.npz")
     assert not np.array_equal(MaterialField.load(avg / "material_field_a1.000.npz").E, one_draw.E)
     field = MaterialField.load(out / "material_field_a1.000.npz")

@@ -216,6 +216,21 @@ def test_predict_sweep_refine_and_model_material(tmp_path, tiny_checkpoint, blob
     direct = predictor.predict(grid, [0.37], heads=("mpm", "lbs", "spring_mass"), seed=0, steps=4)
     np.testing.assert_allclose(pred.mpm[0].E, direct.mpm[0].E, rtol=1e-5)
     assert core.exact_prediction(plan, 0.37, ("mpm",))[1] == "refined"
+    # an exact prediction follows its sweep's sampler: a sweep drawn at temperature 1 — or saved before temperatures
+    # were recorded, when every sweep was a draw — gives draws at temperature 1 between its α values
+    from unipixie.core.model.sweep import AlphaSweep, predict_sweep
+
+    drawn = predict_sweep(predictor, grid, alphas=[0.0, 1.0], seed=0, steps=4, temperature=1.0, use_cache=False)
+    old = AlphaSweep.load(drawn.save(tmp_path / "old_sweep.npz"))
+    del old.meta["temperature"]
+    for i, sw in enumerate((drawn, old)):
+        sw_path = sw.save(tmp_path / f"sweep_t1_{i}.npz")
+        p1 = core.ModelPlan(grid=str(blob_grid), sweep=str(sw_path), checkpoint=str(tiny_checkpoint), steps=4)
+        pred1, how1, _ = core.exact_prediction(p1, 0.37, ("mpm",))
+        want = predictor.predict(grid, [0.37], heads=("mpm", "lbs", "spring_mass"), seed=0, steps=4, temperature=1.0)
+        assert how1 == "exact inference"
+        np.testing.assert_allclose(pred1.mpm[0].E, want.mpm[0].E, rtol=1e-5)
+        assert not np.allclose(pred1.mpm[0].E, direct.mpm[0].E, rtol=1e-3)   # not the default path's
     with pytest.raises(UserError, match="α must lie in"):                # checked where α comes in: the Refine
         _run(core.refine_job(plan, 1.5))
 

@@ -54,6 +54,7 @@ from ..core.errors import SimulationDiverged, UserError
 from ..core.progress import Progress, silent
 from ..core import annotation as ann_mod
 from ..core.model.config import HEADS
+from ..core.model.inference import DEFAULT_TEMPERATURE, check_temperature
 from .error_breakdown import error_breakdown, scoring_facts
 from .evaluation_report import write_report
 from .oracle import REFERENCES, OracleSettings, oracle_predictions
@@ -75,7 +76,11 @@ class EvalSettings:
     sampled ``unipixie`` (the paper's ODE sampler).  average_samples: for each K, also evaluate
     ``unipixie_avgK``, the average of K draws (seeds ``seed`` … ``seed + K − 1``, averaged in the network's
     normalised units: :meth:`~unipixie.core.model.inference.Predictor.predict`'s ``samples``), a Monte-Carlo
-    estimate of the conditional mean.  oracle: on a procedural dataset, also score the
+    estimate of the conditional mean.  ``unipixie`` samples at the product's default temperature
+    (:data:`~unipixie.core.model.inference.DEFAULT_TEMPERATURE`); temperatures: for each other τ, also evaluate
+    ``unipixie_tτ``, one draw at that temperature (``unipixie_t1``: the paper's sampler, a draw from the model);
+    ``unipixie_mean`` and ``unipixie_avgK`` are draws from the model (temperature 1).  oracle: on a procedural
+    dataset, also score the
     reference predictors of :mod:`.oracle` (what the best possible model reaches on these labels), each
     from ``oracle_draws`` annotations drawn from the generator's priors."""
 
@@ -92,11 +97,17 @@ class EvalSettings:
     render_resolution: int = 128
     mean_prediction: bool = True
     average_samples: tuple = ()
+    temperatures: tuple = (1.0,)
     oracle: bool = True
     oracle_draws: int = 1000
 
 
 # =========================================================================== metrics
+def temperature_method(temperature: float) -> str:
+    """The evaluated method's name for one draw at ``temperature`` (``unipixie_t1``, ``unipixie_t0.5``)."""
+    return f"unipixie_t{float(temperature):g}"
+
+
 def targets_at(targets: dict, alpha: float) -> dict:
     """Targets (K,) at ``alpha`` in metric channels: ``E``, ``density``, ``nu`` and ``material``."""
     out = {q: ann_mod.channel(ann_mod.interpolate(targets[f"{q}_min"], targets[f"{q}_max"], alpha, q), q)
@@ -238,7 +249,19 @@ class Methods:
     def names(self) -> list:
         mean = ["unipixie_mean"] if self.model and self.settings.mean_prediction else []
         averages = [f"unipixie_avg{k}" for k in self.settings.average_samples] if self.model else []
-        return (["unipixie"] if self.model else []) + mean + averages + [b.name for b in self.baselines]
+        return (["unipixie"] if self.model else []) + mean + averages + \
+            [temperature_method(t) for t in self.other_temperatures()] + [b.name for b in self.baselines]
+
+    def other_temperatures(self) -> list:
+        """The temperatures evaluated besides the default's (``unipixie_tτ``), in the order given."""
+        if self.model is None:
+            return []
+        out = []
+        for t in self.settings.temperatures:
+            t = check_temperature(t)
+            if t != DEFAULT_TEMPERATURE and t not in out:
+                out.append(t)
+        return out
 
     def predict_all(self, grid, alphas, heads=HEADS) -> dict:
         """method -> (arrays for the predictions file, native prediction object), runtime included."""
@@ -255,19 +278,27 @@ class Methods:
             arrays["runtime_s"] = np.float64(runtime)
             out["unipixie"] = (arrays, pred)
             if s.mean_prediction:
-                mean = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, steps=1)
+                mean = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, steps=1, temperature=1.0)
                 t = time.perf_counter()
-                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, steps=1)
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, steps=1, temperature=1.0)
                 arrays = _unipixie_arrays(mean, alphas)
                 arrays["runtime_s"] = np.float64(time.perf_counter() - t)
                 out["unipixie_mean"] = (arrays, mean)
             for k in s.average_samples:
-                average = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, samples=k)
+                average = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, samples=k,
+                                             temperature=1.0)
                 t = time.perf_counter()
-                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, samples=k)
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, samples=k, temperature=1.0)
                 arrays = _unipixie_arrays(average, alphas)
                 arrays["runtime_s"] = np.float64(time.perf_counter() - t)
                 out[f"unipixie_avg{k}"] = (arrays, average)
+            for temp in self.other_temperatures():
+                draw = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, temperature=temp)
+                t = time.perf_counter()
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, temperature=temp)
+                arrays = _unipixie_arrays(draw, alphas)
+                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
+                out[temperature_method(temp)] = (arrays, draw)
         for b in self.baselines:
             fields = b.predict(grid, alphas, seed=s.seed)
             t = time.perf_counter()
@@ -325,7 +356,7 @@ def simulate_methods(obj, gt: dict, sample, preds: dict, alphas, gt_settings, se
         if float(a) not in gt_alphas:
             continue
         for method, (arrays, native) in preds.items():
-            if method in ("unipixie", "unipixie_mean"):
+            if method.startswith("unipixie"):  # the model's Prediction (every sampler of it)
                 field = native.mpm[i]
             else:
                 f = native[i]

@@ -35,6 +35,10 @@ def add_arguments(p):
     p.add_argument("--samples", type=positive_int, default=1, metavar="K",
                    help="average K draws (seeds SEED … SEED+K−1) in log units: the conditional mean, the least "
                         "squared error, at K times the cost (default 1: one draw)")
+    p.add_argument("--temperature", type=float, default=None, metavar="T",
+                   help="the sampler's starting-noise scale in [0, 1]: 0 the deterministic path (the default; --seed "
+                        "plays no part), 1 a draw from the model (the paper's sampler; --samples K > 1 averages K "
+                        "such draws)")
     p.add_argument("--device", type=device, default="auto")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
 
@@ -44,7 +48,7 @@ def run(args) -> int:
 
     from ..atomic_io import OutputLock, check_writable, refuse_overwriting_inputs, write_error
     from ..errors import UserError
-    from ..model.inference import DEFAULT_STEPS, Predictor, canonical_heads
+    from ..model.inference import DEFAULT_STEPS, DEFAULT_TEMPERATURE, Predictor, canonical_heads, check_temperature
     from ..types import FeatureGrid
 
     chosen = [x is not None for x in (args.alpha, args.alphas, args.sweep)]
@@ -52,6 +56,9 @@ def run(args) -> int:
         raise UserError("give only one of --alpha, --alphas and --sweep")
     heads = canonical_heads(args.heads)
     steps = args.steps if args.steps is not None else DEFAULT_STEPS
+    if args.temperature is None:  # averaging draws needs draws: K > 1 samples the model (temperature 1)
+        args.temperature = 1.0 if args.samples > 1 else DEFAULT_TEMPERATURE
+    args.temperature = check_temperature(args.temperature)
     out = Path(args.out).expanduser()
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {args.out} is an existing file; --out names a folder for the prediction files")
@@ -81,15 +88,15 @@ def _predict(args, out, grid, predictor, heads, steps) -> int:
     with Progress(total=1.0, description="predict") as progress:
         if args.sweep is not None:
             sweep = predict_sweep(predictor, grid, count=args.sweep, seed=args.seed, heads=heads, steps=steps,
-                                  progress=progress, samples=args.samples)
+                                  progress=progress, samples=args.samples, temperature=args.temperature)
             path = sweep.save(out / "alpha_sweep.npz")
             print(f"wrote the {len(sweep.alphas)}-value alpha sweep to {path}")
             return 0
         alphas = args.alphas if args.alphas is not None else [0.5 if args.alpha is None else args.alpha]  # as checked
         pred = predictor.predict(grid, alphas, heads=heads, seed=args.seed, steps=steps, progress=progress,
-                                 samples=args.samples)
+                                 samples=args.samples, temperature=args.temperature)
     summary = {"checkpoint": predictor.checkpoint, "grid": str(args.grid), "seed": args.seed, "steps": steps,
-               "samples": args.samples,
+               "samples": args.samples, "temperature": args.temperature,
                "seconds": pred.seconds, "device": str(predictor.device), "alphas": []}
     for i, a in enumerate(pred.alphas):
         tag = f"a{a:.3f}"

@@ -24,7 +24,8 @@ from ..paths import cache_dir, content_key
 from ..progress import Progress
 from ..types import FeatureGrid, GridGeometry, MaterialField, unpack_occupancy
 from .config import HEADS
-from .inference import DEFAULT_STEPS, DEFAULT_SWEEP_COUNT, LBSPrediction, Prediction, Predictor, SpringPrediction
+from .inference import (DEFAULT_STEPS, DEFAULT_SWEEP_COUNT, DEFAULT_TEMPERATURE, LBSPrediction, Prediction, Predictor,
+                        SpringPrediction)
 
 SWEEP_FORMAT = "unipixie.alpha_sweep/1"
 
@@ -138,10 +139,12 @@ class AlphaSweep:
 
     def refine(self, predictor: Predictor, grid: FeatureGrid, alpha: float, heads=None,
                progress: Optional[Progress] = None) -> Prediction:
-        """Exact inference at ``alpha`` with the sweep's seed and steps (the slider's "refine")."""
+        """Exact inference at ``alpha`` with the sweep's seed, steps and temperature (the slider's "refine"; a sweep
+        saved before temperatures were recorded was drawn at temperature 1)."""
         heads = heads or tuple(self.meta.get("heads", ("mpm",)))
         return predictor.predict(grid, [alpha], heads=heads, seed=int(self.meta.get("seed", 0)),
-                                 steps=int(self.meta.get("steps", DEFAULT_STEPS)), progress=progress)
+                                 steps=int(self.meta.get("steps", DEFAULT_STEPS)), progress=progress,
+                                 temperature=float(self.meta.get("temperature", 1.0)))
 
     # ------------------------------------------------------------------ files
     def save(self, path) -> Path:
@@ -176,10 +179,11 @@ def sweep_alphas(count: int = DEFAULT_SWEEP_COUNT) -> np.ndarray:
 
 
 def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, steps: int, heads,
-                    samples: int = 1) -> str:
-    """The cache key of a sweep; ``samples`` (draws averaged) enters only when it is not 1, so one-draw sweeps keep
-    their keys."""
-    extra = () if int(samples) == 1 else (("samples", int(samples)),)
+                    samples: int = 1, temperature: float = DEFAULT_TEMPERATURE) -> str:
+    """The cache key of a sweep; ``samples`` (draws averaged) and ``temperature`` enter only when they are not 1, so
+    one-draw sweeps at temperature 1 keep the keys they had before either existed."""
+    extra = (() if int(samples) == 1 else (("samples", int(samples)),)) + \
+        (() if float(temperature) == 1.0 else (("temperature", float(temperature)),))
     return content_key("alpha-sweep", predictor.key or predictor.checkpoint, grid.occupancy, grid.features,
                        grid.feature_model, grid.geometry.to_dict(), np.asarray(alphas, np.float64), int(seed), int(steps),
                        sorted(heads), predictor.precision, predictor.sampler_id, *extra)
@@ -187,21 +191,23 @@ def sweep_cache_key(predictor: Predictor, grid: FeatureGrid, alphas, seed: int, 
 
 def predict_sweep(predictor: Predictor, grid: FeatureGrid, count: int = DEFAULT_SWEEP_COUNT, seed: int = 0,
                   heads=HEADS, steps: int = DEFAULT_STEPS, use_cache: bool = True,
-                  progress: Optional[Progress] = None, alphas=None, samples: int = 1) -> AlphaSweep:
+                  progress: Optional[Progress] = None, alphas=None, samples: int = 1,
+                  temperature: float = DEFAULT_TEMPERATURE) -> AlphaSweep:
     """Predict at ``count`` evenly spaced α values — or at exactly ``alphas`` (ascending, e.g. the α values
-    of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``); ``samples`` draws averaged
-    (:meth:`~unipixie.core.model.inference.Predictor.predict`)."""
+    of the bakes to make) — in one pass (cached on disk in ``<cache>/alpha_sweeps``); ``samples`` draws averaged,
+    ``temperature`` the starting noise's scale (:meth:`~unipixie.core.model.inference.Predictor.predict`)."""
     alphas = sweep_alphas(count) if alphas is None else np.asarray(alphas, dtype=np.float64).reshape(-1)
     path = None
     if use_cache and predictor.key:
-        key = sweep_cache_key(predictor, grid, alphas, seed, steps, heads, samples)
+        key = sweep_cache_key(predictor, grid, alphas, seed, steps, heads, samples, temperature)
         path = cache_dir("alpha_sweeps") / f"{key}.npz"
         if path.is_file():
             try:
                 return AlphaSweep.load(path)
             except UserError:
                 path.unlink(missing_ok=True)
-    pred = predictor.predict(grid, alphas, heads=heads, seed=seed, steps=steps, progress=progress, samples=samples)
+    pred = predictor.predict(grid, alphas, heads=heads, seed=seed, steps=steps, progress=progress, samples=samples,
+                             temperature=temperature)
     sweep = AlphaSweep.from_prediction(pred, grid)
     sweep.meta.update({"checkpoint": predictor.checkpoint, "seconds": pred.seconds})
     if path is not None:

@@ -171,13 +171,16 @@ class PipelineSettings:
     def predict_inputs(self, grid_path) -> dict:
         """What a sweep depends on.  The heads are not part of it: a sweep without a solver's head is not
         wrong, a bake with that solver predicts the head exactly at its α (:func:`exact_prediction`)."""
+        from ..model.inference import DEFAULT_TEMPERATURE
+
         ckpt = resolve_checkpoint(self.checkpoint)
         inputs = {"grid": Path(grid_path).name, "checkpoint": checkpoint_identity(ckpt)}
         if self.alphas is None:
             inputs["count"] = self.resolved_sweep_count()
         else:
             inputs["alphas"] = list(self.alphas)
-        inputs.update({"seed": int(self.seed), "steps": self.resolved_steps(), "precision": precision_of(self.device)})
+        inputs.update({"seed": int(self.seed), "steps": self.resolved_steps(), "temperature": DEFAULT_TEMPERATURE,
+                       "precision": precision_of(self.device)})
         return inputs
 
     def to_dict(self) -> dict:

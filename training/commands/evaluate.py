@@ -37,12 +37,27 @@ def add_arguments(p):
     p.add_argument("--average-samples", default="", metavar="K[,K...]",
                    help="also evaluate 'unipixie_avgK': the average of K draws of the model (the Monte-Carlo "
                         "conditional mean), for each K given (e.g. 2,4,8; default none)")
+    p.add_argument("--temperatures", default="1", metavar="T[,T...]",
+                   help="also evaluate 'unipixie_tT': one draw at each sampler temperature T in [0, 1] other than the "
+                        "default's (1: the paper's sampler, a draw from the model; default 1; '' for none)")
     p.add_argument("--render-resolution", type=_common.positive_int, default=128, help="render size (default 128)")
     p.add_argument("--no-oracle", action="store_true",
                    help="do not score the reference predictors (procedural datasets only: the best any model can "
                         "reach on the labels, from the generator's own priors; training/oracle.py)")
     p.add_argument("--oracle-draws", type=int, default=1000,
                    help="annotations drawn per object for the reference predictors (default 1000, at least 10)")
+
+
+def _comma_list(text: str, option: str, parse, check, what: str) -> tuple:
+    """The distinct values of a comma-separated option, in order, each parsed and checked (a UserError names the
+    option)."""
+    from ...core.errors import UserError
+
+    try:
+        values = tuple(dict.fromkeys(parse(x) for x in text.split(",") if x.strip()))
+    except ValueError:
+        raise UserError(f"{option} {text!r}: expected {what} separated by commas") from None
+    return tuple(check(v) for v in values)
 
 
 def run(args) -> int:
@@ -57,15 +72,10 @@ def run(args) -> int:
         raise UserError(f"--alphas {args.alphas!r}: expected numbers separated by commas") from None
     if any(not 0.0 <= a <= 1.0 for a in alphas):
         raise UserError(f"--alphas {args.alphas!r}: values must lie in [0, 1]")
-    from ...core.model.inference import check_samples
+    from ...core.model.inference import check_samples, check_temperature
 
-    try:
-        average_samples = tuple(dict.fromkeys(int(k) for k in args.average_samples.split(",") if k.strip()))
-    except ValueError:
-        raise UserError(f"--average-samples {args.average_samples!r}: expected whole numbers separated by commas") \
-            from None
-    for k in average_samples:
-        check_samples(k)
+    average_samples = _comma_list(args.average_samples, "--average-samples", int, check_samples, "whole numbers")
+    temperatures = _comma_list(args.temperatures, "--temperatures", float, check_temperature, "numbers in [0, 1]")
     checkpoint = None if args.checkpoint.lower() == "none" else args.checkpoint
     if checkpoint is not None and not Path(checkpoint).is_dir():
         raise UserError(f"checkpoint {checkpoint}: directory not found")
@@ -83,7 +93,7 @@ def run(args) -> int:
                             fitters=not args.no_fitters, render_frames=args.render_frames,
                             render_views=args.render_views, render_resolution=args.render_resolution,
                             mean_prediction=not args.no_mean_prediction, average_samples=average_samples,
-                            oracle=not args.no_oracle,
+                            temperatures=temperatures, oracle=not args.no_oracle,
                             oracle_draws=args.oracle_draws)
     from ..dataset import DatasetDir
 
