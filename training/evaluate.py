@@ -72,17 +72,16 @@ class EvalSettings:
     fitters: run the specialist test-time fitters in Table 2.  render_frames / render_views /
     render_resolution: the PSNR/SSIM renders (0 frames = no renders).  mean_prediction: also evaluate
     ``unipixie_mean``, the model's one-step prediction (steps = 1: the data-predicting network's output from
-    pure noise, its estimate of the conditional mean — the MSE-optimal point estimate), besides the
-    sampled ``unipixie`` (the paper's ODE sampler).  average_samples: for each K, also evaluate
+    pure noise, its estimate of the conditional mean — the MSE-optimal point estimate), besides ``unipixie``
+    (the ODE sampler at the product's default temperature,
+    :data:`~unipixie.core.model.inference.DEFAULT_TEMPERATURE`).  average_samples: for each K, also evaluate
     ``unipixie_avgK``, the average of K draws (seeds ``seed`` … ``seed + K − 1``, averaged in the network's
     normalised units: :meth:`~unipixie.core.model.inference.Predictor.predict`'s ``samples``), a Monte-Carlo
-    estimate of the conditional mean.  ``unipixie`` samples at the product's default temperature
-    (:data:`~unipixie.core.model.inference.DEFAULT_TEMPERATURE`); temperatures: for each other τ, also evaluate
+    estimate of the conditional mean.  temperatures: for each τ other than the default's, also evaluate
     ``unipixie_tτ``, one draw at that temperature (``unipixie_t1``: the paper's sampler, a draw from the model);
     ``unipixie_mean`` and ``unipixie_avgK`` are draws from the model (temperature 1).  oracle: on a procedural
-    dataset, also score the
-    reference predictors of :mod:`.oracle` (what the best possible model reaches on these labels), each
-    from ``oracle_draws`` annotations drawn from the generator's priors."""
+    dataset, also score the reference predictors of :mod:`.oracle` (what the best possible model reaches on these
+    labels), each from ``oracle_draws`` annotations drawn from the generator's priors."""
 
     alphas: tuple = (0.0, 0.5, 1.0)
     split: str = "test"
