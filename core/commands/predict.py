@@ -36,9 +36,9 @@ def add_arguments(p):
                    help="average K draws (seeds SEED … SEED+K−1) in log units: the conditional mean, the least "
                         "squared error, at K times the cost (default 1: one draw)")
     p.add_argument("--temperature", type=float, default=None, metavar="T",
-                   help="the sampler's starting-noise scale in [0, 1]: 0 the deterministic path (the default; --seed "
-                        "plays no part), 1 a draw from the model (the paper's sampler; --samples K > 1 averages K "
-                        "such draws)")
+                   help="the MPM and LBS heads' starting-noise scale in [0, 1]: 0 the deterministic path (the "
+                        "default; --seed then only sets the spring head's draw), 1 a draw from the model (the paper's "
+                        "sampler; --samples K > 1 averages K such draws)")
     p.add_argument("--device", type=device, default="auto")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
 
