@@ -145,7 +145,8 @@ def test_prediction_shapes_determinism_and_shared_noise():
                                                                              pred.spring_mass[0].stiffness)
     other = p.predict(g, [0.5], seed=4, steps=4, heads="mpm", temperature=1.0)
     assert not np.allclose(other.mpm[0].E, pred.mpm[1].E)
-    single = p.predict(g, [0.5], seed=3, steps=4, temperature=1.0)  # one α alone == the same α inside the batch (shared noise)
+    # one α alone == the same α inside the batch (shared noise)
+    single = p.predict(g, [0.5], seed=3, steps=4, temperature=1.0)
     assert np.allclose(np.log10(single.mpm[0].E), np.log10(pred.mpm[1].E), atol=1e-4)
     assert np.allclose(single.spring_mass[0].stiffness, pred.spring_mass[1].stiffness, rtol=1e-4)
     only = p.predict(g, [0.5], seed=3, steps=4, heads=("lbs",))
@@ -177,8 +178,8 @@ def test_averaged_samples_are_the_mean_of_the_draws_in_log_units():
 
 
 def test_temperature_scales_the_starting_noise_and_zero_is_one_deterministic_path():
-    """x(0) = τ·ε for the per-voxel heads: at τ = 0 every seed gives the same MPM and LBS fields, the flow integrated
-    from the noise's mean (a zero start); at τ = 1 seeds differ; in between the start is the scaled draw.  The spring
+    """x(0) = τ·ε for the per-voxel heads: at τ = 0 every seed gives the same MPM and LBS fields, the flow
+    integrated from the noise's mean (a zero start); at τ = 1 seeds differ; in between the start is the scaled draw.  The spring
     head draws whatever τ is.  τ is recorded, checked, and averaging draws at τ = 0 is refused."""
     from unipixie.core.model import inference
 

@@ -110,9 +110,10 @@ def resolve_torch_device(device: str = "auto") -> torch.device:
 DEFAULT_TEMPERATURE = 0.0
 """The sampler's default noise scale (τ, module docstring): the deterministic path.  Measured on the shipped model's
 200 test objects (one H200; models/default/evaluation_temperature.md): log E MSE 0.271 with one draw at τ = 1, 0.218
-at τ = ½, **0.204 at τ = 0** — as good as averaging 8 draws (0.199) at one draw's cost, better at every class and
-distance from a part boundary, E inside its range at α = 0 / 1 for 49.6 / 40.9 % of the voxels (one draw 45.9 /
-39.9 %), the sweep monotone on every object.  An artist's slider wants one answer per α, not a new draw per seed.
+at τ = ½, **0.204 at τ = 0** — nearly as good as averaging 8 draws (0.199) at one draw's cost, better at every
+class and distance from a part boundary, E inside its range at α = 0 / 1 for 49.6 / 40.9 % of the voxels (one draw
+45.9 / 39.9 %), the sweep monotone on every object; on the 201 validation objects 0.226 against 0.282.  An artist's
+slider wants one answer per α, not a new draw per seed.
 On Table 2's 20 test objects (models/default/evaluation_table2_temperature.md) the MPM field at τ = 0 follows the
 ground-truth motion more closely (0.053 / 0.042 / 0.041 of the size against 0.054 / 0.046 / 0.044) and the LBS head
 is 1.12× its test-time fit (1.16× at τ = 1)."""
