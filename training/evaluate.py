@@ -269,35 +269,22 @@ class Methods:
         out = {}
         s = self.settings
         if self.model is not None:
-            pred = self.model.predict(grid, alphas=alphas, heads=heads, seed=s.seed)
-            t = time.perf_counter()
-            self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed)
-            runtime = time.perf_counter() - t
-            arrays = _unipixie_arrays(pred, alphas)
-            arrays["runtime_s"] = np.float64(runtime)
-            out["unipixie"] = (arrays, pred)
+            def model_method(name, predict_heads, **sampler):
+                """Predict at ``alphas``, then time one MPM-head prediction at α = 0.5 with the same sampler."""
+                pred = self.model.predict(grid, alphas=alphas, heads=predict_heads, seed=s.seed, **sampler)
+                t = time.perf_counter()
+                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, **sampler)
+                arrays = _unipixie_arrays(pred, alphas)
+                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
+                out[name] = (arrays, pred)
+
+            model_method("unipixie", heads)
             if s.mean_prediction:
-                mean = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, steps=1, temperature=1.0)
-                t = time.perf_counter()
-                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, steps=1, temperature=1.0)
-                arrays = _unipixie_arrays(mean, alphas)
-                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
-                out["unipixie_mean"] = (arrays, mean)
+                model_method("unipixie_mean", ("mpm",), steps=1, temperature=1.0)
             for k in s.average_samples:
-                average = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, samples=k,
-                                             temperature=1.0)
-                t = time.perf_counter()
-                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, samples=k, temperature=1.0)
-                arrays = _unipixie_arrays(average, alphas)
-                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
-                out[f"unipixie_avg{k}"] = (arrays, average)
+                model_method(f"unipixie_avg{k}", ("mpm",), samples=k, temperature=1.0)
             for temp in self.other_temperatures():
-                draw = self.model.predict(grid, alphas=alphas, heads=("mpm",), seed=s.seed, temperature=temp)
-                t = time.perf_counter()
-                self.model.predict(grid, alphas=(0.5,), heads=("mpm",), seed=s.seed, temperature=temp)
-                arrays = _unipixie_arrays(draw, alphas)
-                arrays["runtime_s"] = np.float64(time.perf_counter() - t)
-                out[temperature_method(temp)] = (arrays, draw)
+                model_method(temperature_method(temp), ("mpm",), temperature=temp)
         for b in self.baselines:
             fields = b.predict(grid, alphas, seed=s.seed)
             t = time.perf_counter()

@@ -127,9 +127,8 @@ def exact_prediction(plan: ModelPlan, alpha: float, heads, progress=None, from_s
 
     predictor = get_predictor(plan.checkpoint, device=plan.device)
     grid = FeatureGrid.load(plan.grid)
-    # the sweep's own sampler (a sweep saved before temperatures were recorded was drawn at temperature 1)
     pred = predictor.predict(grid, [alpha], heads=want, seed=plan.seed, steps=plan.steps, progress=progress,
-                             temperature=float(sweep.meta.get("temperature", 1.0)))
+                             temperature=sweep.temperature)  # the sweep's own sampler
     one = AlphaSweep.from_prediction(pred, grid)
     one.meta.update({"checkpoint": str(plan.checkpoint), "seconds": pred.seconds})
     one.save(path)  # atomic (core/atomic_io.py), with a unique temporary name

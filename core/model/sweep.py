@@ -137,14 +137,19 @@ class AlphaSweep:
         return SpringPrediction(float(alpha), (10.0 ** self._lerp(self.spring_log10_stiffness, alpha)).astype(np.float32),
                                 float(self._lerp(self.spring_softness, alpha)))
 
+    @property
+    def temperature(self) -> float:
+        """The sampler temperature the sweep was predicted at (a sweep saved before temperatures were recorded was
+        drawn at temperature 1)."""
+        return float(self.meta.get("temperature", 1.0))
+
     def refine(self, predictor: Predictor, grid: FeatureGrid, alpha: float, heads=None,
                progress: Optional[Progress] = None) -> Prediction:
-        """Exact inference at ``alpha`` with the sweep's seed, steps and temperature (the slider's "refine"; a sweep
-        saved before temperatures were recorded was drawn at temperature 1)."""
+        """Exact inference at ``alpha`` with the sweep's seed, steps and temperature (the slider's "refine")."""
         heads = heads or tuple(self.meta.get("heads", ("mpm",)))
         return predictor.predict(grid, [alpha], heads=heads, seed=int(self.meta.get("seed", 0)),
                                  steps=int(self.meta.get("steps", DEFAULT_STEPS)), progress=progress,
-                                 temperature=float(self.meta.get("temperature", 1.0)))
+                                 temperature=self.temperature)
 
     # ------------------------------------------------------------------ files
     def save(self, path) -> Path:
