@@ -18,6 +18,7 @@ device="cpu", settings=None, progress=None)`` function.
 
 from __future__ import annotations
 
+import copy
 import importlib
 from typing import Iterable, Sequence
 
@@ -86,6 +87,22 @@ class Simulation:
         """Simulate several environments (one effect list each); solvers that can batch do it in one launch."""
         terms = [self.terms_for(e) for e in effect_lists]
         return self._run_terms(terms, progress=progress, particle_states=False)
+
+    def up_to(self, frames: int) -> "Simulation":
+        """This prepared simulation reporting only its first ``frames`` instants (``frame_times[:frames]``).
+
+        It shares everything prepared — body, particles or network, compiled kernels, cached device buffers and
+        captured graphs — so its run is the first ``frames`` instants of this one's run and costs only their
+        substeps (the diagnosis runs its fits only as far as its predictive window).  Runs of the two share those
+        buffers: run them one after another, as runs of one simulation are.  frames: 1 … T."""
+        frames = int(frames)
+        if not 1 <= frames <= len(self.frame_times):
+            raise ValueError(f"frames must be 1 … {len(self.frame_times)}, got {frames}")
+        if frames == len(self.frame_times):
+            return self
+        view = copy.copy(self)
+        view.frame_times = self.frame_times[:frames]
+        return view
 
     @property
     def concurrent_runs(self) -> bool:

@@ -48,3 +48,39 @@ def test_blender_entry_points(blender):
     from unipixie.core import api
 
     assert callable(api.bake_object) and callable(api.clear_bake) and callable(api.scenario_from_scene)
+
+
+@pytest.mark.parametrize("solver, settings", [("mpm", {"cells_across": 6}), ("spring_mass", {"anchors": 32}),
+                                              ("lbs", {"handles": 4})])
+def test_a_run_up_to_a_frame_is_the_start_of_the_full_run(solver, settings):
+    """``Simulation.up_to(k)`` shares the prepared simulation and runs only its first k instants: the same positions
+    as the full run's first k, bit for bit (CPU), through a bounce on the ground, alone and in a batch; the full
+    simulation is untouched and a bad count is refused."""
+    import trimesh
+
+    from unipixie.core import api
+    from unipixie.solvers import api as solver_api
+    from unipixie.solvers import effects
+
+    mesh = trimesh.creation.box([0.1, 0.1, 0.1])
+    mesh.apply_translation([0.0, 0.0, 0.06])
+    body = api.Body.from_mesh(mesh)
+    frames = np.linspace(0.0, 0.24, 13)
+    sim = solver_api.prepare(solver, body, api.HomogeneousMaterial(2e5, 0.3, 500),
+                                 api.Scenario(ground_height=0.0), frames, settings=settings)
+    drag = [effects.make("linear_drag", c=0.5)]
+    full = sim.run_batch([[], drag])
+    short = sim.up_to(7)
+    assert short.frame_times.shape == (7,) and sim.frame_times.shape == (13,)
+    part = short.run_batch([[], drag])
+    for a, b in zip(full, part):
+        assert b.positions.shape[0] == 7
+        np.testing.assert_array_equal(b.positions, a.positions[:7])
+    alone = sim.run(drag).positions  # a run alone against a run alone (LBS batches round differently)
+    np.testing.assert_array_equal(short.run(drag).positions, alone[:7])
+    assert np.ptp(full[0].positions[:7].mean(axis=1)[:, 2]) > 0.005  # its centre fell onto the ground
+    np.testing.assert_array_equal(sim.run(drag).positions, alone)
+    assert sim.up_to(13) is sim
+    for bad in (0, 14):
+        with pytest.raises(ValueError, match="frames must be"):
+            sim.up_to(bad)

@@ -122,7 +122,8 @@ class _TwoResolutions:
         z = 0.3 * self.x ** 2 * np.sin(omega * self.t) + (self.offset if fine else 0.0)
         return np.stack(np.broadcast_arrays(self.x + 0 * self.t, 0 * z, z), axis=-1)
 
-    def run(self, effect_lists, sim=None):
+    def run(self, effect_lists, sim=None, full=False):
+        assert full, "the floor is over every observed sample: the check's runs must not stop at a window"
         self.runs += len(effect_lists)
         return [self.trajectory(effects[0], bool(getattr(sim or self.sim, "fine", False))) for effects in effect_lists]
 
@@ -239,3 +240,58 @@ def test_a_setting_given_changes_only_its_key_of_the_diagnosis_defaults():
     given = SpringMassSettings(anchors=96)
     assert diagnose.diagnosis_settings("spring_mass", given) is given  # a settings object is used as it is
 
+
+
+class _CountingSimulation:
+    """A stand-in prepared simulation: each run is its frame count's positions (the instant index everywhere); it
+    counts the instants it simulated."""
+
+    def __init__(self, frames: int, points: int, log: list):
+        self.frame_times = np.linspace(0.0, 1.0, frames)
+        self.sample_positions = np.zeros((1, 3))
+        self.points, self.log = points, log
+
+    def up_to(self, frames):
+        view = _CountingSimulation(frames, self.points, self.log)
+        view.frame_times = self.frame_times[:frames]
+        return view
+
+    def run_batch(self, effect_lists):
+        T = len(self.frame_times)
+        self.log.append((T, len(effect_lists)))
+        pos = np.broadcast_to(np.arange(T, dtype=float)[:, None, None], (T, self.points, 3))
+        return [SimpleNamespace(positions=pos.copy()) for _ in effect_lists]
+
+
+def test_runs_stop_at_the_predictive_window_unless_the_full_record_is_asked_for():
+    """After :meth:`Problem.set_window` a run simulates only up to the window's last instant (its later instants
+    NaN), one view per simulation shared by every batch; ``full`` runs (what is reported over every sample) and runs
+    before a window cover the whole record; fits running side by side share the shortened runs' batches."""
+    from unipixie.core.diagnosis.problem import Problem
+    from unipixie.core.progress import silent
+
+    T, N = 20, 4
+    rest = np.zeros((N, 3))
+    m = SimpleNamespace(positions=np.zeros((T, N, 3)), observed=np.ones((T, N), dtype=bool), rest=rest)
+    log = []
+    sim = _CountingSimulation(T, N, log)
+    P = Problem(m, sim, [], silent(), max_batch=8)
+    assert P.run([[]])[0].shape == (T, N, 3) and log[-1] == (T, 1)
+    P.set_window(np.arange(T) < 8)
+    runs = P.run([[], []])
+    assert log[-1] == (8, 2)
+    for r in runs:
+        assert r.shape == (T, N, 3)
+        np.testing.assert_array_equal(r[:8, 0, 0], np.arange(8.0))
+        assert np.all(np.isnan(r[8:]))
+    assert P.residual_of(runs[0]).shape == (3 * 8 * N,) and np.all(np.isfinite(P.residual_of(runs[0])))
+    assert np.all(np.isfinite(P.run([[]], full=True)[0])) and log[-1] == (T, 1)
+    assert P.positions_for(1.0, [], full=True).shape == (T, N, 3) and log[-1] == (T, 1)
+    assert P._simulation_for(sim, False) is P._simulation_for(sim, False)  # one view, so batches can join
+    finer = _CountingSimulation(T, N, log)
+    P.run([[]], sim=finer)
+    assert log[-1] == (8, 1)
+    log.clear()
+    P.parallel = True
+    P.side_by_side([lambda: P.run([[]]), lambda: P.run([[], []])])
+    assert log == [(8, 3)]

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import pytest
+
 from unipixie.core.diagnosis import checks
 
 
@@ -91,3 +93,17 @@ def test_a_failed_half_step_check_says_what_it_measured():
     assert "removes 25 %" in check["verdict"] and "eta=374 → eta=139" in check["verdict"]
     check = finish([SimpleNamespace(residual=noise * 1.1, u=None)])  # 93 %
     assert check["ok"] is True and check["verdict"] == "the effect is still needed at half the time step"
+
+
+def test_noise_thresholds_are_the_chi_square_and_chi_bar_square_quantiles():
+    """Λ's threshold at the false-alarm level: the χ² quantile for unbounded parameters (χ²₁ at 10⁻³: 10.83;
+    χ²₂: 13.82), half of it in the tail for one parameter at a bound (½ χ²₀ + ½ χ²₁: P(χ²₁ > c) = 2·10⁻³ at
+    c = 9.55), and Bonferroni-split over tests (10⁻³ / 10 for χ²₁: 15.14)."""
+    from unipixie.core.diagnosis import significance as sig
+
+    assert sig.lr_threshold(1, 0) == pytest.approx(10.828, abs=2e-3)
+    assert sig.lr_threshold(2, 0) == pytest.approx(13.816, abs=2e-3)
+    assert sig.lr_threshold(0, 1) == pytest.approx(9.550, abs=2e-3)
+    assert sig.lr_threshold(1, 0, tests=10) == pytest.approx(15.137, abs=2e-3)
+    assert sig.lr_threshold(0, 0) == float("inf")
+    assert sig.chibar_tail(0.0, 1, 0) == 1.0

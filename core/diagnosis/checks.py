@@ -34,7 +34,7 @@ def judge(P: Problem, ref: Reference, cands: Sequence[CandidateResult], sse_base
     tests = sum(c.tests for c in cands)
     if P.window is not None and cands:  # the spec's rmse / explained are over all observed samples
         full = P.run([P.model_effects(c.E_scale, c.effects, c.parametrisation.fixed if c.parametrisation
-                                      else ref.fixed) for c in cands])
+                                      else ref.fixed) for c in cands], full=True)
         for c, pos in zip(cands, full):
             c.sse_all, c.rmse = P.rmse_all(pos)
     for c in cands:

@@ -344,7 +344,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         ref = Reference(choice.E_scale, list(choice.effects), choice.sse, choice.residual,
                          [e for e in ref.fixed if e.name != choice.name or e.name == "stiffness_region"],
                         ref.prior_width)
-        pos = P.positions_for(ref.scale, ref.effects, ref.fixed)
+        pos = P.positions_for(ref.scale, ref.effects, ref.fixed, full=True)
         history_positions.append(pos)
         history.append({"effects": [e.name for e in ref.fixed] + [e.name for e in ref.effects],
                         "rmse": P.rmse_all(pos)[1], "E_scale": float(ref.scale),
@@ -381,7 +381,7 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
             f"(RMSE {1e3 * base_material['rmse_stated_E']:.2f} mm with the stated E, "
             f"{1e3 * base_material['rmse_fitted_E']:.2f} mm with the fitted one)")
     final_pos = history_positions[-1] if len(history_positions) > 1 else P.positions_for(ref.scale, ref.effects,
-                                                                                          ref.fixed)
+                                                                                          ref.fixed, full=True)
     if len(history_positions) == 1:
         history_positions.append(final_pos)
     final = compare(final_pos, measurement.positions, measurement.times, measurement.rest,

@@ -60,6 +60,8 @@ class Problem:
         self.measured = np.asarray(measurement.positions, dtype=np.float64)
         self.obs_all = measurement.observed
         self.window: Optional[np.ndarray] = None  # (T,) frames the fits use (None: all)
+        self.window_frames = len(self.measured)  # runs stop after this many instants (the window's last + 1)
+        self._views: dict = {}  # id(simulation) → (simulation, its view up to window_frames)
         self.obs = self.obs_all
         self.target = self.measured[self.obs]  # (K, 3)
         self.n_obs = int(self.obs.sum())
@@ -100,17 +102,41 @@ class Problem:
             out.append(fx.make("stiffness_region", factor=float(scale), region={"box": self.everything_box}))
         return out
 
-    def run(self, effect_lists: list, sim=None) -> list:
+    def run(self, effect_lists: list, sim=None, full: bool = False) -> list:
         """Trajectories (T, N, 3) positions for several effect lists, batched; a diverged run gives NaN.
 
+        With a predictive window (:meth:`set_window`) a run stops at the window's last instant unless ``full``: the
+        fits see nothing later, and a run costs only the substeps up to there; the instants after it are NaN.  What
+        is reported over every observed sample (``rmse_all``) asks for ``full`` runs.
         From a fit running in :attr:`gate`'s jobs the request joins the other fits' in a shared batch."""
-        sim = sim or self.sim
+        sim = self._simulation_for(sim or self.sim, full)
         counter = EVALUATIONS.get()
         if counter is not None:
             counter[0] += len(effect_lists)
         if self.gate.in_job():
-            return self.gate.request(effect_lists, sim)
-        return self._run_now(effect_lists, sim)
+            runs = self.gate.request(effect_lists, sim)
+        else:
+            runs = self._run_now(effect_lists, sim)
+        return [self._full_length(positions) for positions in runs]
+
+    def _simulation_for(self, sim, full: bool):
+        """``sim`` itself, or (a window set and not ``full``) its view that stops at the window's end
+        (:meth:`.Simulation.up_to`), one per simulation so that a batch's runs share it."""
+        if full or self.window_frames >= len(sim.frame_times):
+            return sim
+        kept = self._views.get(id(sim))
+        if kept is None or kept[0] is not sim:
+            kept = (sim, sim.up_to(self.window_frames))
+            self._views[id(sim)] = kept
+        return kept[1]
+
+    def _full_length(self, positions: np.ndarray) -> np.ndarray:
+        """(T, N, 3) m: a run that stopped early padded with NaN after its last instant."""
+        if len(positions) == len(self.measured):
+            return positions
+        out = np.full(self.measured.shape, np.nan)
+        out[:len(positions)] = positions
+        return out
 
     def side_by_side(self, jobs: Sequence[Callable[[], object]]) -> list:
         """Run ``jobs`` (fits) side by side with their simulations batched together (:mod:`.batching`), or one
@@ -151,8 +177,11 @@ class Problem:
         return [positions for result in results for positions in result]
 
     def set_window(self, frames: np.ndarray) -> None:
-        """Fit and test on the instants ``frames`` (T,) bool only (the predictive window)."""
+        """Fit and test on the instants ``frames`` (T,) bool only (the predictive window); runs then stop after
+        its last instant (:meth:`run`)."""
         self.window = np.asarray(frames, dtype=bool)
+        self.window_frames = int(np.nonzero(self.window)[0][-1]) + 1 if self.window.any() else len(self.measured)
+        self._views = {}
         self.obs = self.obs_all & self.window[:, None]
         self.target = self.measured[self.obs]
         self.n_obs = int(self.obs.sum())
@@ -196,8 +225,10 @@ class Problem:
 
         return fn
 
-    def positions_for(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None) -> np.ndarray:
-        return self.run([self.model_effects(scale, effects, fixed)])[0]
+    def positions_for(self, scale: float, effects: Sequence[fx.Effect], fixed: Optional[list] = None,
+                      full: bool = False) -> np.ndarray:
+        """(T, N, 3) m: one run of the base model at E/ρ × ``scale`` with ``effects`` (``full``: :meth:`run`)."""
+        return self.run([self.model_effects(scale, effects, fixed)], full=full)[0]
 
 
 @dataclass

@@ -194,7 +194,7 @@ def absorb_base_scale(P, effects_at, scale: float, coarse: np.ndarray, fine: np.
     :data:`REFIT_PARABOLAS` times the vertex of the parabola (in log f) through the best factor so far and its
     neighbours; the best run is returned (f = 1 and ``fine`` when nothing is closer)."""
     factors = [1.0] + [float(f) for f in REFIT_FACTORS]
-    runs = [fine] + list(P.run([effects_at(scale * f) for f in factors[1:]], sim=fine_sim))
+    runs = [fine] + list(P.run([effects_at(scale * f) for f in factors[1:]], sim=fine_sim, full=True))
     tried = {f: (_sse(r, coarse, mask), r) for f, r in zip(factors, runs)}
     for _ in range(REFIT_PARABOLAS):
         fs = sorted(tried)
@@ -209,7 +209,7 @@ def absorb_base_scale(P, effects_at, scale: float, coarse: np.ndarray, fine: np.
         f_star = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
         if any(abs(f_star / f - 1.0) < 1e-3 for f in fs):
             break
-        run = P.run([effects_at(scale * f_star)], sim=fine_sim)[0]
+        run = P.run([effects_at(scale * f_star)], sim=fine_sim, full=True)[0]
         tried[f_star] = (_sse(run, coarse, mask), run)
     best = min(tried, key=lambda f: tried[f][0])
     return best, tried[best][1]
@@ -229,11 +229,11 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
     if fine_settings is None:
         return ResolutionCheck(verdict="the solver exposes no resolution or time-step setting: not checked"), None
     t0 = time.perf_counter()
-    coarse = P.run([effects_at(scale)])[0]
+    coarse = P.run([effects_at(scale)], full=True)[0]  # the floor is over every observed sample
     t_coarse = time.perf_counter() - t0
     fine_sim = prepare(fine_settings)
     t0 = time.perf_counter()
-    fine = P.run([effects_at(scale)], sim=fine_sim)[0]
+    fine = P.run([effects_at(scale)], sim=fine_sim, full=True)[0]
     t_fine = time.perf_counter() - t0
     obs = P.obs_all
     level = noise_rmse(sigma)
