@@ -116,6 +116,7 @@ class _TwoResolutions:
         self.offset, self.stiffer = offset, stiffer
         self.obs_all = self.obs = np.ones((31, 12), dtype=bool)
         self.runs = 0
+        self.window_share = 1.0  # the runs left cover the whole record (no predictive window)
 
     def trajectory(self, scale: float, fine: bool) -> np.ndarray:
         omega = 20.0 * math.sqrt(scale * (1.0 if fine else self.stiffer))
@@ -162,6 +163,11 @@ def test_the_budget_decides_finer_or_floor_and_the_verdict_says_which_machine_de
     check, use = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
                                              remaining_runs=10 ** 9, budget_s=math.inf)
     assert check.used_finer and "budget unlimited" in check.verdict and check.to_dict()["budget_s"] is None
+    # runs that stop at a predictive window cost its share of the finer whole-record run
+    P.window_share = 0.25
+    windowed, _ = resolution.check_resolution(P, lambda scale: [scale], 1.0, lambda s: P.fine_sim, sigma=0.0005,
+                                              remaining_runs=10 ** 9, budget_s=math.inf)
+    assert windowed.predicted_seconds == pytest.approx(0.25 * windowed.finer_seconds * 10 ** 9)
 
 
 def test_a_skipped_refit_is_said_and_its_floor_is_an_upper_bound(monkeypatch):
@@ -272,11 +278,12 @@ def test_runs_stop_at_the_predictive_window_unless_the_full_record_is_asked_for(
 
     T, N = 20, 4
     rest = np.zeros((N, 3))
-    m = SimpleNamespace(positions=np.zeros((T, N, 3)), observed=np.ones((T, N), dtype=bool), rest=rest)
+    m = SimpleNamespace(positions=np.zeros((T, N, 3)), observed=np.ones((T, N), dtype=bool), rest=rest,
+                        times=np.linspace(0.0, 1.0, T))
     log = []
     sim = _CountingSimulation(T, N, log)
     P = Problem(m, sim, [], silent(), max_batch=8)
-    assert P.run([[]])[0].shape == (T, N, 3) and log[-1] == (T, 1)
+    assert P.run([[]])[0].shape == (T, N, 3) and log[-1] == (T, 1) and P.window_share == 1.0
     P.set_window(np.arange(T) < 8)
     runs = P.run([[], []])
     assert log[-1] == (8, 2)
@@ -288,6 +295,7 @@ def test_runs_stop_at_the_predictive_window_unless_the_full_record_is_asked_for(
     assert np.all(np.isfinite(P.run([[]], full=True)[0])) and log[-1] == (T, 1)
     assert P.positions_for(1.0, [], full=True).shape == (T, N, 3) and log[-1] == (T, 1)
     assert P._simulation_for(sim, False) is P._simulation_for(sim, False)  # one view, so batches can join
+    assert P.window_share == pytest.approx(7 / 19)  # up to the 8th of 20 evenly spaced instants
     finer = _CountingSimulation(T, N, log)
     P.run([[]], sim=finer)
     assert log[-1] == (8, 1)

@@ -246,8 +246,10 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
         factor, fine = absorb_base_scale(P, effects_at, scale, coarse, fine, fine_sim, P.obs)
     floor = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
+    # the runs left stop at a predictive window (Problem.run): they cost the window's share of a whole-record run
+    share = float(P.window_share)
     check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
-                            predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
+                            predicted_seconds=t_fine * share * max(int(remaining_runs), 0), budget_s=float(budget_s),
                             settings=plain_settings(P.sim.settings), finer=plain_settings(fine_settings),
                             difference=diff if np.all(np.isfinite(diff)) else None,
                             floor_before_refit=same_E, finer_E_factor=factor)
