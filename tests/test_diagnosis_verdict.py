@@ -62,3 +62,38 @@ def test_a_least_bad_effect_is_not_named(tmp_path):
     assert any(w.startswith("not named: wind") for w in d.warnings)
     clean = diagnose.diagnose(measured(0.0), "spring_mass", settings={"anchors": 48}, **kw)
     assert clean.identified == "wind" and clean.verdict["code"] == "effect_found"
+
+
+def _report_stub(history, positions, **kw):
+    T, N = 11, 5
+    measured = np.zeros((T, N, 3))
+    base = dict(history=history, history_positions=positions, times=np.linspace(0.0, 1.0, T), measured=measured,
+                E_scale=2.06, final=SimpleNamespace(rmse=0.0128), base_contact={"adopted": False}, noise_rmse=0.00175,
+                resolution={"checked": True, "enforce_floor": True, "floor_rmse": 0.0112}, horizon=0.5,
+                contact_times=[0.2], baseline=SimpleNamespace(worst_times=[], per_time=np.full(T, 0.02)))
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_the_ladder_shows_the_refitted_base_and_the_discretisation_floor(tmp_path):
+    """With nothing added the pictures still compare the refitted base model (what a `null` verdict is about) with
+    the model as given, and draw the model's discretisation floor where it was enforced and the end of the predictive
+    window; with an effect added the steps are the history's."""
+    from unipixie.core.diagnosis import report
+
+    T, N = 11, 5
+    as_given, refit = np.full((T, N, 3), 0.02), np.full((T, N, 3), 0.01)
+    d = _report_stub([{"effects": [], "rmse": 0.0192}], [as_given, refit])
+    steps = report.ladder_steps(d)
+    assert [s[1] for s in steps] == ["as given", "base refit (E/ρ × 2.06)"]
+    assert [s[2] for s in steps] == [0.0192, 0.0128] and steps[1][3] is refit
+    assert report._discretisation_floor(d) == 0.0112
+    d.base_contact = {"adopted": True}
+    assert report.ladder_steps(d)[1][1] == "base refit (E/ρ × 2.06, its floor)"
+    for plot, name in ((report.plot_ladder, "ladder.png"), (report.plot_error_over_time, "time.png")):
+        plot(d, tmp_path / name)
+        assert (tmp_path / name).stat().st_size > 1000
+    added = _report_stub([{"effects": [], "rmse": 0.0192}, {"effects": ["wind"], "rmse": 0.0018}], [as_given, refit],
+                         resolution={"checked": True, "enforce_floor": False, "floor_rmse": 0.0002})
+    assert [(s[0], s[2]) for s in report.ladder_steps(added)] == [("as given", 0.0192), ("+ wind", 0.0018)]
+    assert report._discretisation_floor(added) is None

@@ -136,23 +136,49 @@ def _labels(d) -> list[str]:
     return out
 
 
+def ladder_steps(d) -> list[tuple[str, str, float, np.ndarray]]:
+    """The models the pictures compare, in order: (short label, long label, RMSE m over all observed samples,
+    (T, N, 3) positions m) — the model as given, then each effect added (``history``).  When none was added, the
+    refitted base model (its E/ρ, and the ground contact fitted with it where adopted) comes last: what the
+    diagnosis's verdict is about, and how far it still is from the measurement."""
+    labels = _labels(d)
+    steps = [(labels[0] if i == 0 else "+ " + labels[i].split(" + ")[-1], labels[i], float(h["rmse"]),
+              d.history_positions[i]) for i, h in enumerate(d.history)]
+    if len(d.history) == 1 and len(d.history_positions) > 1:
+        fitted = f"E/ρ × {d.E_scale:.3g}" + (", its floor" if d.base_contact.get("adopted") else "")
+        steps.append((f"base refit\n({fitted})", f"base refit ({fitted})", float(d.final.rmse),
+                      d.history_positions[-1]))
+    return steps
+
+
+def _discretisation_floor(d) -> float | None:
+    """The model's discretisation floor (m) where the diagnosis enforced it (resolution check), else ``None``."""
+    floor = d.resolution.get("floor_rmse") if d.resolution.get("enforce_floor") else None
+    return float(floor) if floor is not None and math.isfinite(floor) else None
+
+
 def plot_error_over_time(d, path: Path) -> None:
     from .compare import point_distances, _nan_rms
 
     fig = _figure(8, 4)
     ax = fig.add_subplot(111)
     t = d.times
-    labels = _labels(d)
+    steps = ladder_steps(d)
     colours = ["#c0392b", "#2980b9", "#27ae60", "#8e44ad", "#d35400"]
-    for i, pos in enumerate(d.history_positions[: len(d.history)]):
+    for i, (_, label, rmse, pos) in enumerate(steps):
         per_time = _nan_rms(point_distances(pos, d.measured), axis=1)
-        ax.plot(t, 1e3 * per_time, color=colours[i % len(colours)], lw=1.8 if i in (0, len(d.history) - 1) else 1.0,
-                label=f"{labels[i]} ({1e3 * d.history[i]['rmse']:.2f} mm)")
+        ax.plot(t, 1e3 * per_time, color=colours[i % len(colours)], lw=1.8 if i in (0, len(steps) - 1) else 1.0,
+                label=f"{label} ({1e3 * rmse:.2f} mm)")
     nr = 1e3 * d.noise_rmse
     ax.axhspan(0, nr, color="0.85", label=f"noise floor ±{nr:.2f} mm")
     ax.axhline(2 * nr, color="0.5", ls=":", lw=1, label="2 × noise")
+    floor = _discretisation_floor(d)
+    if floor is not None:
+        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=f"model's discretisation floor {1e3 * floor:.2f} mm")
     for i, tc in enumerate(d.contact_times):
         ax.axvline(tc, color="0.3", ls="--", lw=0.8, label="ground contact" if i == 0 else None)
+    if d.horizon is not None:  # fits and tests used the instants before it (chaotic contact later)
+        ax.axvspan(d.horizon, t[-1], color="#f5cba7", alpha=0.35, lw=0, label="after the predictive window")
     wt = d.baseline.worst_times[:3]
     if wt:
         idx = [int(np.argmin(np.abs(t - w))) for w in wt]
@@ -228,16 +254,19 @@ def plot_worst_paths(d, path: Path, count: int = 3) -> None:
 def plot_ladder(d, path: Path) -> None:
     fig = _figure(6, 3.6)
     ax = fig.add_subplot(111)
-    labels = _labels(d)
-    vals = [1e3 * h["rmse"] for h in d.history]
+    steps = ladder_steps(d)
+    vals = [1e3 * rmse for _, _, rmse, _ in steps]
     ax.bar(range(len(vals)), vals, color=["#c0392b"] + ["#2980b9"] * (len(vals) - 1))
     for i, v in enumerate(vals):
         ax.text(i, v, f"{v:.2f}", ha="center", va="bottom", fontsize=8)
     nr = 1e3 * d.noise_rmse
     ax.axhline(nr, color="0.3", ls="--", lw=1, label=f"noise floor {nr:.2f} mm")
     ax.axhline(2 * nr, color="0.5", ls=":", lw=1, label="2 × noise")
+    floor = _discretisation_floor(d)
+    if floor is not None:
+        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=f"model's discretisation floor {1e3 * floor:.2f} mm")
     ax.set_xticks(range(len(vals)))
-    ax.set_xticklabels(["as given"] + ["+ " + l.split(" + ")[-1] for l in labels[1:]], fontsize=8, rotation=15)
+    ax.set_xticklabels([short for short, _, _, _ in steps], fontsize=8, rotation=15)
     ax.set_ylabel("RMSE [mm]")
     ax.set_title("Error after each added effect")
     ax.legend(fontsize=7)
