@@ -199,6 +199,17 @@ def unpack_occupancy(packed, resolution: int, path) -> np.ndarray:
     return np.unpackbits(packed)[: R ** 3].astype(bool).reshape(R, R, R)
 
 
+def _load_grid(d: dict, path) -> tuple[GridGeometry, np.ndarray]:
+    """The grid geometry (JSON key ``geometry``) and the (R, R, R) bool occupancy (packed key ``occupancy``) of a
+    loaded feature-grid or material-field archive ``d``; a geometry that is no grid geometry, or packed bits that do
+    not fit it, is a :class:`UserError` naming ``path``."""
+    try:
+        geo = GridGeometry(**_json_key(d, "geometry", path))
+    except TypeError as exc:
+        raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
+    return geo, unpack_occupancy(d["occupancy"], geo.resolution, path)
+
+
 @dataclass
 class FeatureGrid:
     """Per-voxel visual features of one object (the model's input).
@@ -244,11 +255,7 @@ class FeatureGrid:
     @classmethod
     def load(cls, path) -> "FeatureGrid":
         d = _load_npz(path, "feature_grid")
-        try:
-            geo = GridGeometry(**_json_key(d, "geometry", path))
-        except TypeError as exc:
-            raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
-        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
+        geo, occ = _load_grid(d, path)
         return cls(geometry=geo, occupancy=occ, features=d["features"], feature_model=str(d["feature_model"]),
                    meta=_json_key(d, "meta", path))
 
@@ -308,11 +315,7 @@ class MaterialField:
     @classmethod
     def load(cls, path) -> "MaterialField":
         d = _load_npz(path, "material_field")
-        try:
-            geo = GridGeometry(**_json_key(d, "geometry", path))
-        except TypeError as exc:
-            raise UserError(f"{path}: key 'geometry' is not a grid geometry ({exc})") from None
-        occ = unpack_occupancy(d["occupancy"], geo.resolution, path)
+        geo, occ = _load_grid(d, path)
         return cls(geo, occ, d["E"], d["nu"], d["density"], d["material"], float(d["alpha"]), _json_key(d, "meta", path))
 
 

@@ -64,6 +64,18 @@ def tiny_checkpoint(tmp_path_factory):
 
 
 @pytest.fixture
+def one_torch_thread():
+    """Torch's intra-op threads set to one for the test, then restored: on tiny tensors one thread is fastest and
+    never oversubscribes a shared CI machine (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
 def blender():
     """The bpy module with an empty factory scene and the UniPixie add-on registered (in-process)."""
     bpy = pytest.importorskip("bpy")

@@ -13,6 +13,8 @@ from unipixie.core.errors import UserError
 from unipixie.core.normalise import Normalisation, unit_cube_grid
 from unipixie.core.types import MaterialField
 
+from motion_helpers import lbs_motion
+
 
 def _cube(size=1.0, centre=(0.0, 0.0, 0.0), matrix=None, name="Cube"):
     import trimesh
@@ -221,23 +223,6 @@ def test_background_run_cancels_and_reraises():
 
 
 # --------------------------------------------------------------------------- the armature plan
-def lbs_motion(rest, T=5, H=3, seed=0, shear=0.1, handle_scale=0.05):
-    """A motion in the LBS solver's form: x = A[X;1] + Σ_h w_h D_h [X;1] (weights may be negative)."""
-    rng = np.random.default_rng(seed)
-    W = np.concatenate([rng.normal(0.3, 0.5, (len(rest), H)), np.ones((len(rest), 1))], axis=1)
-    HT = np.zeros((T, H + 1, 3, 4))
-    c = rest.mean(0)
-    for t in range(T):
-        R = Rotation.from_rotvec([0.2 * t, -0.1 * t, 0.05 * t]).as_matrix()
-        HT[t, H, :, :3] = R @ np.array([[1, shear * t, 0], [0, 1, 0], [0, 0, 1]])
-        HT[t, H, :, 3] = c - HT[t, H, :, :3] @ c + [0.1 * t, 0.0, -0.05 * t * t]
-        HT[t, :H] = handle_scale * t * rng.normal(size=(H, 3, 4))
-    X1 = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
-    pos = np.einsum("thij,nj->tnhi", HT, X1)
-    pos = pos[:, :, H] + np.einsum("nh,tnhi->tni", W[:, :H], pos[:, :, :H])
-    return W, HT, pos
-
-
 def test_lbs_blend_form_is_a_convex_blend_equal_to_the_lbs_motion():
     rest = np.random.default_rng(2).normal(size=(30, 3))
     W, HT, pos = lbs_motion(rest)

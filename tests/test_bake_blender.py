@@ -13,6 +13,8 @@ import sys
 import numpy as np
 import pytest
 
+from motion_helpers import lbs_motion
+
 pytestmark = pytest.mark.blender
 
 TOL = 1e-5  # metres
@@ -51,25 +53,6 @@ def _synthetic_trajectory(bo, T):
     pos = rest[None] + np.array([0.02, 0.0, -0.03]) * t + 0.01 * np.sin(3 * rest[None] + t)
     pos[0] = rest
     return Trajectory(times=np.arange(T) / 24.0, positions=pos, solver="mpm")
-
-
-def lbs_motion(rest, T=5, H=3, seed=0, shear=0.1, handle_scale=0.05):
-    """A motion in the LBS solver's form: x = A[X;1] + Σ_h w_h D_h [X;1] (weights may be negative)."""
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(seed)
-    W = np.concatenate([rng.normal(0.3, 0.5, (len(rest), H)), np.ones((len(rest), 1))], axis=1)
-    HT = np.zeros((T, H + 1, 3, 4))
-    c = rest.mean(0)
-    for t in range(T):
-        R = Rotation.from_rotvec([0.2 * t, -0.1 * t, 0.05 * t]).as_matrix()
-        HT[t, H, :, :3] = R @ np.array([[1, shear * t, 0], [0, 1, 0], [0, 0, 1]])
-        HT[t, H, :, 3] = c - HT[t, H, :, :3] @ c + [0.1 * t, 0.0, -0.05 * t * t]
-        HT[t, :H] = handle_scale * t * rng.normal(size=(H, 3, 4))
-    X1 = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
-    pos = np.einsum("thij,nj->tnhi", HT, X1)
-    pos = pos[:, :, H] + np.einsum("nh,tnhi->tni", W[:, :H], pos[:, :, :H])
-    return W, HT, pos
 
 
 def _drive(gen):

@@ -21,16 +21,9 @@ from unipixie.core.types import FeatureGrid, GridGeometry, MaterialField
 from unipixie.solvers.materials import NUM_CLASSES, names
 from unipixie.solvers.skinning import LBS_PARAM_COUNT
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 R, D, ANCHORS = 8, 12, 10
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread is fastest and never oversubscribes a shared CI machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _config(**kw):

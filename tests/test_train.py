@@ -19,15 +19,9 @@ from unipixie.training.sample_format import (SAMPLE_FORMAT, TrainingSample, data
 from unipixie.training.synthetic import make_dataset, make_sample
 from unipixie.training.train import TrainSettings, train
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 TINY = dict(preset="tiny", device="cpu", precision="fp32", save_every=10 ** 9, log_every=1, lr=1e-3, warmup=2)
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ one only when case, device and metric are the same; everything else is kept.
 Each entry carries the ``commit`` and ``date`` it was measured at (given by the
 caller, else the checkout's HEAD and today); the file's own ``commit`` and
 ``date`` are those of its latest write, not of every entry.
-The benchmarks share their timing (:func:`median_time`, :func:`synchronized_times`) and the jelly
-sphere drop that ``bench lbs`` and ``bench spring`` both measure (:func:`sphere_drop`, :func:`sphere_mesh`).
+The benchmarks share their timing (:func:`median_time`, :func:`synchronized_times`, :func:`time_simulation`) and
+the jelly sphere drop that ``bench lbs`` and ``bench spring`` both measure (:func:`sphere_drop`, :func:`sphere_mesh`).
 """
 
 from __future__ import annotations
@@ -106,6 +106,26 @@ def synchronized_times(fn: Callable[[], object], runs: int, wp, device: str) -> 
         wp.synchronize_device(device)
         times.append(time.perf_counter() - t0)
     return times
+
+
+def time_simulation(sim, effects_lists: list | None, runs: int, wp, device: str) -> tuple:
+    """Time a prepared simulation's run: ``sim.run([])``, or with ``effects_lists`` (one list of effects per
+    environment) ``sim.run_batch(effects_lists)``; once untimed (the warm-up), then ``runs`` times by
+    :func:`synchronized_times`.
+
+    Returns ``(go, trajectory, median_s, environments)``: the timed call (for further runs), the warm-up run's
+    trajectory (the first environment's of a batch), the median wall time in seconds and the number of environments
+    (1 without a batch).
+    """
+    if effects_lists is None:
+        go = lambda: sim.run([])  # noqa: E731
+    else:
+        go = lambda: sim.run_batch(effects_lists)  # noqa: E731
+    trajectory = go()
+    trajectory = trajectory[0] if isinstance(trajectory, list) else trajectory
+    median_s = statistics.median(synchronized_times(go, runs, wp, device))
+    environments = 1 if effects_lists is None else len(effects_lists)
+    return go, trajectory, median_s, environments
 
 
 # --------------------------------------------------------------------------- the jelly sphere drop

@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from ..commands._common import positive_int
-from . import sphere_drop, sphere_mesh, synchronized_times
+from . import sphere_drop, sphere_mesh, time_simulation
 
 HELP = "LBS solver throughput (implicit steps/s): 500 cubature points, 100k-vertex mesh output, batches, skinning fit"
 
@@ -94,12 +94,7 @@ def run(args) -> list[dict]:
         t0 = time.perf_counter()
         sim = lbs.prepare(body, material, scenario, frames, device=device, settings=settings)
         prepare_s = time.perf_counter() - t0
-        go = (lambda: sim.run([])) if effects_lists is None else (lambda: sim.run_batch(effects_lists))  # noqa: E731
-        traj = go()
-        traj = traj[0] if isinstance(traj, list) else traj
-        times = synchronized_times(go, args.runs, wp, device)
-        med = statistics.median(times)
-        envs = 1 if effects_lists is None else len(effects_lists)
+        go, traj, med, envs = time_simulation(sim, effects_lists, args.runs, wp, device)
         n_steps = traj.meta["steps"]
         value = {"steps_per_s": n_steps / med, "env_steps_per_s": envs * n_steps / med}[metric]
         # one more run for the breakdown (device phases timed with CUDA events on a GPU)

@@ -99,6 +99,23 @@ def _reference_kernels():
         ground_z: float
         grid_origin: wp.vec3
 
+    @wp.func
+    def ref_stencil(model: RefModel, xp: wp.vec3):
+        """The quadratic B-spline stencil of a particle at ``xp`` (m): the index of its 3×3×3 block's lowest grid
+        node (vec3i), the particle's offset from that node in cells (vec3, each in [0.5, 1.5)) and the weights
+        (mat33: w[i, a] is the weight of the block's node i = 0, 1, 2 along axis a; a node's weight is the product
+        over the three axes)."""
+        g = (xp - model.grid_origin) * model.inv_dx
+        base = wp.vec3i(int(g[0] - 0.5), int(g[1] - 0.5), int(g[2] - 0.5))
+        fx = g - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        wa = wp.vec3(1.5) - fx
+        wb = fx - wp.vec3(1.0)
+        wc = fx - wp.vec3(0.5)
+        w = wp.mat33(0.5 * wa[0] * wa[0], 0.5 * wa[1] * wa[1], 0.5 * wa[2] * wa[2],
+                     0.75 - wb[0] * wb[0], 0.75 - wb[1] * wb[1], 0.75 - wb[2] * wb[2],
+                     0.5 * wc[0] * wc[0], 0.5 * wc[1] * wc[1], 0.5 * wc[2] * wc[2])
+        return base, fx, w
+
     @wp.kernel
     def ref_zero_grid(grid_m: wp.array3d(dtype=float), grid_v_in: wp.array3d(dtype=wp.vec3),
                       grid_v_out: wp.array3d(dtype=wp.vec3)):
@@ -135,15 +152,7 @@ def _reference_kernels():
                 C: wp.array(dtype=wp.mat33), stress: wp.array(dtype=wp.mat33), vol: wp.array(dtype=float),
                 mass: wp.array(dtype=float), grid_m: wp.array3d(dtype=float), grid_v_in: wp.array3d(dtype=wp.vec3)):
         p = wp.tid()
-        g = (x[p] - model.grid_origin) * model.inv_dx
-        base = wp.vec3i(int(g[0] - 0.5), int(g[1] - 0.5), int(g[2] - 0.5))
-        fx = g - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-        wa = wp.vec3(1.5) - fx
-        wb = fx - wp.vec3(1.0)
-        wc = fx - wp.vec3(0.5)
-        w = wp.mat33(0.5 * wa[0] * wa[0], 0.5 * wa[1] * wa[1], 0.5 * wa[2] * wa[2],
-                     0.75 - wb[0] * wb[0], 0.75 - wb[1] * wb[1], 0.75 - wb[2] * wb[2],
-                     0.5 * wc[0] * wc[0], 0.5 * wc[1] * wc[1], 0.5 * wc[2] * wc[2])
+        base, fx, w = ref_stencil(model, x[p])
         stress_term = (-model.dt * vol[p] * 4.0 * model.inv_dx * model.inv_dx) * stress[p]
         for i in range(3):
             for j in range(3):
@@ -177,15 +186,7 @@ def _reference_kernels():
     def ref_g2p(model: RefModel, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
                 F: wp.array(dtype=wp.mat33), F_trial: wp.array(dtype=wp.mat33), grid_v_out: wp.array3d(dtype=wp.vec3)):
         p = wp.tid()
-        g = (x[p] - model.grid_origin) * model.inv_dx
-        base = wp.vec3i(int(g[0] - 0.5), int(g[1] - 0.5), int(g[2] - 0.5))
-        fx = g - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-        wa = wp.vec3(1.5) - fx
-        wb = fx - wp.vec3(1.0)
-        wc = fx - wp.vec3(0.5)
-        w = wp.mat33(0.5 * wa[0] * wa[0], 0.5 * wa[1] * wa[1], 0.5 * wa[2] * wa[2],
-                     0.75 - wb[0] * wb[0], 0.75 - wb[1] * wb[1], 0.75 - wb[2] * wb[2],
-                     0.5 * wc[0] * wc[0], 0.5 * wc[1] * wc[1], 0.5 * wc[2] * wc[2])
+        base, fx, w = ref_stencil(model, x[p])
         new_v = wp.vec3(0.0)
         new_C = wp.mat33(0.0)
         for i in range(3):

@@ -22,12 +22,10 @@ time: what a user waits, which a longer substep improves and ``substeps_per_s`` 
 
 from __future__ import annotations
 
-import statistics
-
 import numpy as np
 
 from ..commands._common import positive_number
-from . import sphere_drop, sphere_mesh, synchronized_times
+from . import sphere_drop, sphere_mesh, time_simulation
 
 HELP = "spring-mass solver throughput (substeps/s): 2048 anchors, a 100k-vertex mesh bound, diagnosis-size runs"
 
@@ -60,16 +58,8 @@ def run(args) -> list[dict]:
     def bench(case, mesh, anchors, frames, effects_lists=None, tracked=None, metric="substeps_per_s"):
         body = Body.from_mesh(mesh, tracked_points=tracked)
         sim = sm.prepare(body, material, scenario, frames, device=device, settings={"anchors": anchors})
-        if effects_lists is None:
-            go = lambda: sim.run([])  # noqa: E731
-        else:
-            go = lambda: sim.run_batch(effects_lists)  # noqa: E731
-        traj = go()
-        traj = traj[0] if isinstance(traj, list) else traj
-        times = synchronized_times(go, args.runs, wp, device)
-        med = statistics.median(times)
+        _, traj, med, envs = time_simulation(sim, effects_lists, args.runs, wp, device)
         subs = traj.meta["substeps"]
-        envs = 1 if effects_lists is None else len(effects_lists)
         value = {"substeps_per_s": subs / med, "env_substeps_per_s": envs * subs / med, "runs_per_s": 1.0 / med}[metric]
         entry = {"case": case, "device": described, "metric": metric, "value": value, "runs": args.runs,
                  "anchors": sim.network.count, "springs": int(len(sim.network.springs)),

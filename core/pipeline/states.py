@@ -58,6 +58,23 @@ def _reason(changes: list[str]) -> str:
     return "; ".join(seen)
 
 
+def _missing_result(record: PipelineRecord, step: str, key: str, gone_reason: str) -> Optional[StepState]:
+    """``not done`` when ``step`` has no record, or (with ``gone_reason``) when the file it recorded under ``key`` is
+    no longer in the cache; ``None`` when both are there."""
+    if not record.get(step):
+        return StepState(NOT_DONE)
+    if record.file(step, key) is None:
+        return StepState(NOT_DONE, gone_reason)
+    return None
+
+
+def _compared(recorded: Optional[dict], current_inputs: Optional[dict], note: str = "") -> StepState:
+    """``stale`` with the reasons of :data:`CHANGE_REASONS` where the recorded inputs and the current ones differ,
+    else ``done`` (with ``note``)."""
+    changes = input_changes(recorded, current_inputs)
+    return StepState(STALE, _reason(changes)) if changes else StepState(DONE, note)
+
+
 @dataclass
 class CurrentInputs:
     """What the steps would be run with now, for one object.
@@ -106,36 +123,32 @@ def step_states(record: PipelineRecord, current: CurrentInputs) -> dict:
     rec = record.get("render")
     if current.fingerprint is None:
         out["render"] = StepState(STALE if rec else NOT_DONE, current.error)
-    elif not rec:
-        out["render"] = StepState(NOT_DONE)
-    elif record.file("render", "views") is None:
-        out["render"] = StepState(NOT_DONE, "the rendered views are no longer in the cache")
+    elif (missing := _missing_result(record, "render", "views",
+                                     "the rendered views are no longer in the cache")) is not None:
+        out["render"] = missing
     else:
-        ch = input_changes(rec.get("inputs"), s.render_inputs(current.fingerprint))
-        out["render"] = StepState(STALE, _reason(ch)) if ch else StepState(DONE)
+        out["render"] = _compared(rec.get("inputs"), s.render_inputs(current.fingerprint))
 
     # features
     rec = record.get("features")
-    if not rec:
-        out["features"] = StepState(NOT_DONE)
-    elif record.file("features", "grid") is None:
-        out["features"] = StepState(NOT_DONE, "the feature grid is no longer in the cache")
+    missing = _missing_result(record, "features", "grid", "the feature grid is no longer in the cache")
+    if missing is not None:
+        out["features"] = missing
     elif current.fingerprint is None:
         out["features"] = StepState(STALE, current.error)
     else:
         try:
-            ch = input_changes(rec.get("inputs"), s.feature_inputs(current.fingerprint))
+            current_inputs = s.feature_inputs(current.fingerprint)
         except UserError as exc:
             out["features"] = StepState(STALE, str(exc))
         else:
-            out["features"] = StepState(STALE, _reason(ch)) if ch else StepState(DONE)
+            out["features"] = _compared(rec.get("inputs"), current_inputs)
 
     # predict
     rec = record.get("predict")
-    if not rec:
-        out["predict"] = StepState(NOT_DONE)
-    elif record.file("predict", "sweep") is None:
-        out["predict"] = StepState(NOT_DONE, "the α sweep is no longer in the cache")
+    missing = _missing_result(record, "predict", "sweep", "the α sweep is no longer in the cache")
+    if missing is not None:
+        out["predict"] = missing
     elif out["features"].state != DONE:
         out["predict"] = StepState(STALE, "the features are " + out["features"].state)
     else:
@@ -155,8 +168,7 @@ def step_states(record: PipelineRecord, current: CurrentInputs) -> dict:
             if "alphas" in (rec.get("inputs") or {}):
                 note = (f"at α {', '.join(f'{float(a):g}' for a in rec['inputs']['alphas'])} only (for bakes); "
                         "Predict again for the α sweep")
-            ch = input_changes(recorded, current_inputs)
-            out["predict"] = StepState(STALE, _reason(ch)) if ch else StepState(DONE, note)
+            out["predict"] = _compared(recorded, current_inputs, note)
 
     # bake
     brec = current.bake_record
