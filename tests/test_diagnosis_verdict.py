@@ -90,6 +90,9 @@ def test_the_ladder_shows_the_refitted_base_and_the_discretisation_floor(tmp_pat
     assert report._discretisation_floor(d) == 0.0112
     d.base_contact = {"adopted": True}
     assert report.ladder_steps(d)[1][1] == "base refit (E/ρ × 2.06, its floor)"
+    d.base_contact, d.E_scale = {"adopted": False}, 1.0  # nothing refitted: the model as given is the verdict's
+    assert [s[1] for s in report.ladder_steps(d)] == ["as given"]
+    d.E_scale = 2.06
     for plot, name in ((report.plot_ladder, "ladder.png"), (report.plot_error_over_time, "time.png")):
         plot(d, tmp_path / name)
         assert (tmp_path / name).stat().st_size > 1000

@@ -138,13 +138,14 @@ def _labels(d) -> list[str]:
 
 def ladder_steps(d) -> list[tuple[str, str, float, np.ndarray]]:
     """The models the pictures compare, in order: (short label, long label, RMSE m over all observed samples,
-    (T, N, 3) positions m) — the model as given, then each effect added (``history``).  When none was added, the
-    refitted base model (its E/ρ, and the ground contact fitted with it where adopted) comes last: what the
+    (T, N, 3) positions m) — the model as given, then each effect added (``history``).  When none was added and the
+    base was refitted (its E/ρ, or a ground contact adopted with it), the refitted base model comes last: what the
     diagnosis's verdict is about, and how far it still is from the measurement."""
     labels = _labels(d)
     steps = [(labels[0] if i == 0 else "+ " + labels[i].split(" + ")[-1], labels[i], float(h["rmse"]),
               d.history_positions[i]) for i, h in enumerate(d.history)]
-    if len(d.history) == 1 and len(d.history_positions) > 1:
+    refitted = abs(d.E_scale - 1.0) > 1e-3 or bool(d.base_contact.get("adopted"))
+    if len(d.history) == 1 and len(d.history_positions) > 1 and refitted:
         fitted = f"E/ρ × {d.E_scale:.3g}" + (", its floor" if d.base_contact.get("adopted") else "")
         steps.append((f"base refit\n({fitted})", f"base refit ({fitted})", float(d.final.rmse),
                       d.history_positions[-1]))
