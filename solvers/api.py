@@ -93,8 +93,9 @@ class Simulation:
 
         It shares everything prepared — body, particles or network, compiled kernels, cached device buffers and
         captured graphs — so its run is the first ``frames`` instants of this one's run and costs only their
-        substeps (the diagnosis runs its fits only as far as its predictive window).  Runs of the two share those
-        buffers: run them one after another, as runs of one simulation are.  frames: 1 … T."""
+        substeps (the diagnosis runs its fits only as far as its predictive window).  The two share those buffers:
+        run them together only as runs of one simulation may be (at once only where :attr:`concurrent_runs`).
+        frames: 1 … T."""
         frames = int(frames)
         if not 1 <= frames <= len(self.frame_times):
             raise ValueError(f"frames must be 1 … {len(self.frame_times)}, got {frames}")
