@@ -88,6 +88,7 @@ def test_the_ladder_shows_the_refitted_base_and_the_discretisation_floor(tmp_pat
     assert [s[1] for s in steps] == ["as given", "base refit (E/ρ × 2.06)"]
     assert [s[2] for s in steps] == [0.0192, 0.0128] and steps[1][3] is refit
     assert report._discretisation_floor(d) == 0.0112
+    assert report._floor_label(d, 0.0112) == "model's discretisation floor (up to t = 0.50 s) 11.20 mm"
     d.base_contact = {"adopted": True}
     assert report.ladder_steps(d)[1][1] == "base refit (E/ρ × 2.06, its floor)"
     d.base_contact, d.E_scale = {"adopted": False}, 1.0  # nothing refitted: the model as given is the verdict's

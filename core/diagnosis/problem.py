@@ -119,14 +119,6 @@ class Problem:
             runs = self._run_now(effect_lists, sim)
         return [self._full_length(positions) for positions in runs]
 
-    @property
-    def window_share(self) -> float:
-        """The share of the record's duration a run covers (1 without a predictive window): what a run costs
-        against a whole-record run."""
-        t = np.asarray(self.m.times, dtype=np.float64)
-        span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-        return 1.0 if span <= 0.0 else float(t[self.window_frames - 1] - t[0]) / span
-
     def _simulation_for(self, sim, full: bool):
         """``sim`` itself, or (a window set and not ``full``) its view that stops at the window's end
         (:meth:`.Simulation.up_to`), one per simulation so that a batch's runs share it."""

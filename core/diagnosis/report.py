@@ -152,6 +152,13 @@ def ladder_steps(d) -> list[tuple[str, str, float, np.ndarray]]:
     return steps
 
 
+def _floor_label(d, floor: float) -> str:
+    """The floor line's legend: measured over the predictive window where there is one (the fits' samples), while
+    the bars and curves are over every observed sample."""
+    where = f" (up to t = {d.horizon:.2f} s)" if d.horizon is not None else ""
+    return f"model's discretisation floor{where} {1e3 * floor:.2f} mm"
+
+
 def _discretisation_floor(d) -> float | None:
     """The model's discretisation floor (m) where the diagnosis enforced it (resolution check), else ``None``."""
     floor = d.resolution.get("floor_rmse") if d.resolution.get("enforce_floor") else None
@@ -175,7 +182,7 @@ def plot_error_over_time(d, path: Path) -> None:
     ax.axhline(2 * nr, color="0.5", ls=":", lw=1, label="2 × noise")
     floor = _discretisation_floor(d)
     if floor is not None:
-        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=f"model's discretisation floor {1e3 * floor:.2f} mm")
+        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=_floor_label(d, floor))
     for i, tc in enumerate(d.contact_times):
         ax.axvline(tc, color="0.3", ls="--", lw=0.8, label="ground contact" if i == 0 else None)
     if d.horizon is not None:  # fits and tests used the instants before it (chaotic contact later)
@@ -265,7 +272,7 @@ def plot_ladder(d, path: Path) -> None:
     ax.axhline(2 * nr, color="0.5", ls=":", lw=1, label="2 × noise")
     floor = _discretisation_floor(d)
     if floor is not None:
-        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=f"model's discretisation floor {1e3 * floor:.2f} mm")
+        ax.axhline(1e3 * floor, color="#e67e22", ls="-.", lw=1, label=_floor_label(d, floor))
     ax.set_xticks(range(len(vals)))
     ax.set_xticklabels([short for short, _, _, _ in steps], fontsize=8, rotation=15)
     ax.set_ylabel("RMSE [mm]")

@@ -6,7 +6,9 @@ the noise looks like a missing effect (issue 18: a spring-mass drop moved 73 mm 
 (:func:`finer_settings`: about twice the spring-mass anchors, 1.5× the MPM cells across, twice the LBS cubature,
 collision points and mass samples, and half the time step) and the two trajectories are compared:
 
-* they differ by no more than the noise (RMSE of 3-D distances ≤ the noise level √3 σ): the resolution is
+* they differ by no more than the noise (RMSE of 3-D distances ≤ the noise level √3 σ, over the observed samples
+  the fits use — those of the predictive window where there is one: past it any change of the model moves the
+  chaotic motion far, refinement as much as a 2 % change of E, and the runs stop there): the resolution is
   sufficient, nothing changes;
 * they differ by more, and a diagnosis with the finer model fits the time budget (the finer run's measured
   cost × the simulations the diagnosis still needs, :data:`DEFAULT_BUDGET_S`; the runs' cost one after another:
@@ -102,8 +104,9 @@ def finer_settings(sim) -> Optional[object]:
 
 @dataclass
 class ResolutionCheck:
-    """Outcome of the check.  floor: RMSE (m, 3-D distances over observed samples) between the fitted base model
-    at the diagnosis's resolution and the finer one; noise_level: √3 σ (m); used_finer: the diagnosis continues
+    """Outcome of the check.  floor: RMSE (m, 3-D distances over the observed samples the fits use: those of the
+    predictive window where there is one) between the fitted base model at the diagnosis's resolution and the finer
+    one; noise_level: √3 σ (m); used_finer: the diagnosis continues
     with the finer model; enforce_floor: effects must beat the floor; seconds / finer_seconds: one run at each
     resolution (s); settings / finer_settings: the two solvers' settings (dicts)."""
 
@@ -194,7 +197,7 @@ def absorb_base_scale(P, effects_at, scale: float, coarse: np.ndarray, fine: np.
     :data:`REFIT_PARABOLAS` times the vertex of the parabola (in log f) through the best factor so far and its
     neighbours; the best run is returned (f = 1 and ``fine`` when nothing is closer)."""
     factors = [1.0] + [float(f) for f in REFIT_FACTORS]
-    runs = [fine] + list(P.run([effects_at(scale * f) for f in factors[1:]], sim=fine_sim, full=True))
+    runs = [fine] + list(P.run([effects_at(scale * f) for f in factors[1:]], sim=fine_sim))
     tried = {f: (_sse(r, coarse, mask), r) for f, r in zip(factors, runs)}
     for _ in range(REFIT_PARABOLAS):
         fs = sorted(tried)
@@ -209,7 +212,7 @@ def absorb_base_scale(P, effects_at, scale: float, coarse: np.ndarray, fine: np.
         f_star = float(np.exp(np.clip(-b / (2 * a), x[0], x[2])))
         if any(abs(f_star / f - 1.0) < 1e-3 for f in fs):
             break
-        run = P.run([effects_at(scale * f_star)], sim=fine_sim, full=True)[0]
+        run = P.run([effects_at(scale * f_star)], sim=fine_sim)[0]
         tried[f_star] = (_sse(run, coarse, mask), run)
     best = min(tried, key=lambda f: tried[f][0])
     return best, tried[best][1]
@@ -229,13 +232,13 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
     if fine_settings is None:
         return ResolutionCheck(verdict="the solver exposes no resolution or time-step setting: not checked"), None
     t0 = time.perf_counter()
-    coarse = P.run([effects_at(scale)], full=True)[0]  # the floor is over every observed sample
+    coarse = P.run([effects_at(scale)])[0]
     t_coarse = time.perf_counter() - t0
     fine_sim = prepare(fine_settings)
     t0 = time.perf_counter()
-    fine = P.run([effects_at(scale)], sim=fine_sim, full=True)[0]
+    fine = P.run([effects_at(scale)], sim=fine_sim)[0]
     t_fine = time.perf_counter() - t0
-    obs = P.obs_all
+    obs = P.obs  # the samples the fits and tests use: beyond a predictive window any change moves the motion far
     level = noise_rmse(sigma)
     same_E = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     factor = 1.0
@@ -246,10 +249,8 @@ def check_resolution(P, effects_at, scale: float, prepare, sigma: float, remaini
         factor, fine = absorb_base_scale(P, effects_at, scale, coarse, fine, fine_sim, P.obs)
     floor = math.sqrt(_sse(coarse, fine, obs) / max(int(obs.sum()), 1))
     diff = (fine[P.obs] - coarse[P.obs]).reshape(-1)
-    # the runs left stop at a predictive window (Problem.run): they cost the window's share of a whole-record run
-    share = float(P.window_share)
     check = ResolutionCheck(checked=True, floor=floor, noise_level=level, seconds=t_coarse, finer_seconds=t_fine,
-                            predicted_seconds=t_fine * share * max(int(remaining_runs), 0), budget_s=float(budget_s),
+                            predicted_seconds=t_fine * max(int(remaining_runs), 0), budget_s=float(budget_s),
                             settings=plain_settings(P.sim.settings), finer=plain_settings(fine_settings),
                             difference=diff if np.all(np.isfinite(diff)) else None,
                             floor_before_refit=same_E, finer_E_factor=factor)
