@@ -7,8 +7,8 @@ the noise looks like a missing effect (issue 18: a spring-mass drop moved 73 mm 
 collision points and mass samples, and half the time step) and the two trajectories are compared:
 
 * they differ by no more than the noise (RMSE of 3-D distances ≤ the noise level √3 σ, over the observed samples
-  the fits use — those of the predictive window where there is one: past it any change of the model moves the
-  chaotic motion far, refinement as much as a 2 % change of E, and the runs stop there): the resolution is
+  the fits use — those of the predictive window where there is one: past it the motion stops depending smoothly
+  on the model, a 2 % change of E already moving it far, and the runs stop there): the resolution is
   sufficient, nothing changes;
 * they differ by more, and a diagnosis with the finer model fits the time budget (the finer run's measured
   cost × the simulations the diagnosis still needs, :data:`DEFAULT_BUDGET_S`; the runs' cost one after another:
