@@ -61,7 +61,7 @@ class Problem:
         self.obs_all = measurement.observed
         self.window: Optional[np.ndarray] = None  # (T,) frames the fits use (None: all)
         self.window_frames = len(self.measured)  # runs stop after this many instants (the window's last + 1)
-        self._views: dict = {}  # id(simulation) → (simulation, its view up to window_frames)
+        self._views: dict = {}  # simulation → its view up to window_frames (Simulation.up_to)
         self.obs = self.obs_all
         self.target = self.measured[self.obs]  # (K, 3)
         self.n_obs = int(self.obs.sum())
@@ -124,11 +124,9 @@ class Problem:
         (:meth:`.Simulation.up_to`), one per simulation so that a batch's runs share it."""
         if full or self.window_frames >= len(sim.frame_times):
             return sim
-        kept = self._views.get(id(sim))
-        if kept is None or kept[0] is not sim:
-            kept = (sim, sim.up_to(self.window_frames))
-            self._views[id(sim)] = kept
-        return kept[1]
+        if sim not in self._views:
+            self._views[sim] = sim.up_to(self.window_frames)
+        return self._views[sim]
 
     def _full_length(self, positions: np.ndarray) -> np.ndarray:
         """(T, N, 3) m: a run that stopped early padded with NaN after its last instant."""
