@@ -81,6 +81,94 @@ def test_error_colour_attribute(blender):
         bio.write_error_attribute(obj, np.zeros(3))
 
 
+def _frame_values(bpy, obj, frame):
+    """(N,) ``unipixie_error_now_m`` and (N, 4) ``unipixie_error_now`` of ``obj``'s mesh at ``frame``."""
+    from unipixie.core.blender_io import error_animation as bea
+
+    bpy.context.scene.frame_set(frame)
+    me = obj.data
+    n = len(me.vertices)
+    vals = np.empty(n, dtype=np.float32)
+    me.attributes[bea.ERROR_NOW_VALUE_ATTRIBUTE].data.foreach_get("value", vals)
+    col = np.empty(n * 4, dtype=np.float32)
+    me.color_attributes[bea.ERROR_NOW_COLOR_ATTRIBUTE].data.foreach_get("color", col)
+    return vals, col.reshape(n, 4)
+
+
+def test_the_error_at_each_frame_follows_the_time_slider(blender):
+    """The per-instant error keyed on the point cloud: each frame shows its instant's error (grey and −1 where the
+    point was not observed then), between instants the last one's; the drawn spheres carry it as their active colour
+    (what Solid shading shows); removing it leaves the mesh's own animation alone."""
+    bpy = blender
+    from unipixie.core.blender_io import error_animation as bea
+    from unipixie.core.blender_io import measure as bio
+
+    scene = bpy.context.scene
+    scene.render.fps = 24
+    m = _measurement(T=6, fps=12.0)  # two frames an instant
+    obj = bio.create_measurement_object(m, name="per-frame error")
+    me = obj.data
+    own_path = f'attributes["{bio.OBSERVED_ATTRIBUTE}"].data[0].value'  # the mesh's own animation: must survive
+    me.animation_data_create().action = bpy.data.actions.new("the user's")
+    me.animation_data.action.fcurve_ensure_for_datablock(me, own_path).keyframe_points.insert(3, 1.0)
+    d = np.linspace(0.0, 0.01, 8)[None, :] * (1 + np.arange(6))[:, None] / 6
+    d[2, 3] = np.nan  # not observed at the third instant
+    anim = bea.write_error_animation(obj, d, m.times, vmax=0.01)
+    assert (anim.instants, anim.keyed, anim.stride) == (6, 6, 1)
+    f0 = scene.frame_start
+    assert (anim.first_frame, anim.last_frame) == (f0, f0 + 10)
+    for i in range(6):
+        for extra in (0, 1):  # on the instant's frame and the frame after it, before the next instant
+            vals, col = _frame_values(bpy, obj, f0 + 2 * i + extra)
+            want = np.where(np.isfinite(d[i]), d[i], bea.NOT_OBSERVED_VALUE)
+            assert np.allclose(vals, want, atol=1e-7), (i, extra)
+            assert np.allclose(col, bio.error_colours(d[i], 0.01), atol=1e-6)
+    _, col = _frame_values(bpy, obj, f0 + 4)
+    assert np.allclose(col[3, :3], 0.5) and not np.allclose(col[2, :3], 0.5)  # grey where not observed
+    _, first = _frame_values(bpy, obj, f0)
+    _, last = _frame_values(bpy, obj, f0 + 10)
+    assert last[7, 1] > first[7, 1]  # the growing error turns the far point from blue towards yellow
+    # the drawn spheres (Geometry Nodes) keep the keyed colour as their active colour attribute
+    ev = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    drawn = ev.to_mesh()
+    assert len(drawn.polygons) > 0 and drawn.color_attributes.active_color is not None
+    assert drawn.color_attributes.active_color.name == bea.ERROR_NOW_COLOR_ATTRIBUTE
+    ev.to_mesh_clear()
+    # writing again replaces; removing takes only what it wrote
+    bea.write_error_animation(obj, d, m.times)
+    assert bea.remove_error_animation(obj) == 8 * 4
+    assert bea.ERROR_NOW_COLOR_ATTRIBUTE not in me.attributes and bea.ERROR_NOW_VALUE_ATTRIBUTE not in me.attributes
+    from bpy_extras import anim_utils
+
+    bag = anim_utils.animdata_get_channelbag_for_assigned_slot(me.animation_data)
+    assert [fc.data_path for fc in bag.fcurves] == [own_path] and me.animation_data.action.name == "the user's"
+
+
+def test_the_error_at_each_frame_is_thinned_to_the_key_limit_and_refuses_bad_input(blender):
+    bpy = blender
+    from unipixie.core.blender_io import error_animation as bea
+    from unipixie.core.errors import UserError
+
+    bpy.ops.mesh.primitive_cube_add()
+    obj = bpy.context.active_object
+    times = np.arange(50) / 24.0
+    d = np.tile(np.arange(50)[:, None] * 1e-4, (1, 8))
+    anim = bea.write_error_animation(obj, d, times, max_keys=32 * 10)  # 32 curves: at most 10 instants
+    assert anim.keyed <= 10 and anim.stride > 1 and "one instant in" in anim.describe()
+    vals, _ = _frame_values(bpy, obj, int(round(anim.last_frame)))
+    assert np.allclose(vals, d[-1], atol=1e-8)  # the last instant is always keyed
+    assert not obj.data.get(bea.OWN_ACTION_PROPERTY)
+    assert obj.data.animation_data.action.get(bea.OWN_ACTION_PROPERTY)
+    bea.remove_error_animation(obj)
+    assert obj.data.animation_data.action is None  # the action it made goes with its last curve
+    with pytest.raises(UserError, match="8 vertices but the error has 3"):
+        bea.write_error_animation(obj, np.zeros((50, 3)), times)
+    with pytest.raises(UserError, match="strictly increasing"):
+        bea.write_error_animation(obj, d, times[::-1])
+    with pytest.raises(UserError, match="at two instants"):
+        bea.write_error_animation(obj, d, times, max_keys=40)
+
+
 def test_measurement_from_keyframed_object(blender, tmp_path):
     bpy = blender
     from unipixie.core.blender_io import measure as bio
@@ -112,6 +200,7 @@ def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
     """A small wind measurement through the panel: compare colours the points, diagnose names wind,
     add effect puts it (with its fitted acceleration) into the model's effects."""
     bpy = blender
+    from unipixie.core.blender_io import error_animation as bea
     from unipixie.core.blender_io import measure as bio
     from unipixie.core.diagnosis import synth
 
@@ -127,7 +216,16 @@ def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
     s.max_additions = 1
     assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}
     before = s.rmse
-    assert before > 0.02 and bio.ERROR_COLOR_ATTRIBUTE in s.measurement_object.data.color_attributes
+    attrs = s.measurement_object.data.color_attributes
+    assert before > 0.02 and bio.ERROR_COLOR_ATTRIBUTE in attrs and bea.ERROR_NOW_COLOR_ATTRIBUTE in attrs
+    assert attrs.active_color.name == bea.ERROR_NOW_COLOR_ATTRIBUTE and "mm (yellow)" in s.colour_scale
+    scene = bpy.context.scene
+    early, _ = _frame_values(bpy, s.measurement_object, scene.frame_start + 1)
+    late, _ = _frame_values(bpy, s.measurement_object, scene.frame_start + 14)
+    assert np.nanmean(late) > 3 * np.nanmean(early)  # the wind's drift grows: so does the error shown
+    s.error_display = "RUN"
+    assert attrs.active_color.name == bio.ERROR_COLOR_ATTRIBUTE
+    s.error_display = "FRAME"
     assert bpy.ops.unipixie.diagnose() == {"FINISHED"}
     assert s.identified == "wind" and (tmp_path / "report" / "diagnosis.html").is_file()
     doc = json.loads((tmp_path / "report" / "diagnosis.json").read_text())
@@ -137,6 +235,9 @@ def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
     assert s.effects_on.startswith("wind:acceleration=")
     assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}  # the model now has the wind: the error fell
     assert s.rmse < 0.2 * before
+    assert bpy.ops.unipixie.clear_error_colours() == {"FINISHED"}
+    assert not any(n.startswith("unipixie_error") for n in s.measurement_object.data.attributes.keys())
+    assert s.colour_scale == ""
 
 
 def test_the_diagnosis_panel_shows_the_notes_wrapped(blender):

@@ -7,7 +7,8 @@ UI only: each operator calls :mod:`unipixie.core.measurement`, :mod:`unipixie.co
 * **Measurement from object** — the active object's keyframed/cached motion saved as a ``.npz``.
 * **Compare** — simulate the model as given (the measurement's material, the chosen solver, the
   effects already on) and colour the measurement's points (and the source object, when it has
-  the same vertices) by per-point error.
+  the same vertices) by their error: over the run, and at each frame (keyed; scrub the time
+  slider).  *Colour by* switches between the two; *Clear error colours* removes both.
 * **Diagnose** — the full diagnosis (ranking, significance, additions) in the background with a
   progress bar (Esc cancels); writes ``diagnosis.json``, the pictures and ``diagnosis.html``.
 * **Add effect** — the identified effect (or the one picked) with its fitted parameters is added
@@ -21,6 +22,7 @@ import textwrap
 from pathlib import Path
 
 import bpy
+import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..core.errors import UserError
@@ -33,6 +35,24 @@ NOTE_WIDTH_CHARS = 70
 
 ADD_ITEMS = [("AUTO", "Identified", "The best significant effect of the last diagnosis")] + [
     (name, cls.label, cls.law) for name, cls in _effects.EFFECTS.items()]
+
+
+def _error_objects(settings):
+    return [obj for obj in (settings.measurement_object, settings.source_object)
+            if obj is not None and obj.type == "MESH"]
+
+
+def _show_error(settings, context=None) -> None:
+    """Make the error colours the panel asks for (at this frame / over the run) the active colour attribute."""
+    from ..core.blender_io import error_animation as bea
+    from ..core.blender_io import measure as bio
+
+    name = bea.ERROR_NOW_COLOR_ATTRIBUTE if settings.error_display == "FRAME" else bio.ERROR_COLOR_ATTRIBUTE
+    for obj in _error_objects(settings):
+        attrs = obj.data.color_attributes
+        if name in attrs:
+            attrs.active_color = attrs[name]
+            obj.data.update()
 
 
 class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
@@ -63,6 +83,14 @@ class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
     notes: StringProperty(name="Notes", default="",
                           description="The last diagnosis's warnings and caveats, one per line (also in its report)")
     report_path: StringProperty(name="Report", default="", subtype="FILE_PATH")
+    error_display: EnumProperty(
+        name="Colour by", default="FRAME", update=_show_error,
+        items=[("FRAME", "At this frame", "Each point's error at the current frame (keyed at every measured instant: "
+                "scrub the time slider); grey where it was not observed then"),
+               ("RUN", "Over the run", "Each point's RMSE over every instant it was observed")],
+        description="Which error the points' colours show (Solid shading, colour 'Attribute')")
+    colour_scale: StringProperty(name="Colour scale", default="",
+                                 description="What the error colours mean: the error shown yellow, per object")
 
 
 def _settings(context) -> UniPixieDiagnosisSettings:
@@ -90,12 +118,27 @@ def _solver_settings(settings):
     return diagnosis_settings(settings.solver, parse_settings(items) if items else None)
 
 
-def _colour(settings, per_point, vmax=None) -> None:
+def _colour(operator, settings, comparison) -> None:
+    """Colour the point cloud and the source object (where its vertices are the tracked points) by ``comparison``
+    (a :class:`~unipixie.core.diagnosis.compare.Comparison`): the per-point RMSE over the run and the error at each
+    measured instant, keyed for the time slider."""
+    from ..core.blender_io import error_animation as bea
     from ..core.blender_io import measure as bio
 
-    for obj in (settings.measurement_object, settings.source_object):
-        if obj is not None and obj.type == "MESH" and len(obj.data.vertices) == len(per_point):
-            bio.write_error_attribute(obj, per_point, vmax=vmax)
+    notes = []
+    for obj in _error_objects(settings):
+        if len(obj.data.vertices) != len(comparison.per_point):
+            continue
+        bio.write_error_attribute(obj, comparison.per_point)
+        run_top = float(np.nanmax(comparison.per_point)) if np.isfinite(comparison.per_point).any() else 0.0
+        try:
+            animation = bea.write_error_animation(obj, comparison.distances, comparison.times)
+            notes.append(f"{obj.name}: {animation.describe()}; over the run 0 → {1e3 * run_top:.3g} mm")
+        except UserError as exc:
+            operator.report({"WARNING"}, f"{obj.name}: no error at each frame ({exc})")
+            notes.append(f"{obj.name}: over the run 0 → {1e3 * run_top:.3g} mm (yellow)")
+    settings.colour_scale = "; ".join(notes)
+    _show_error(settings)
 
 
 class UNIPIXIE_OT_load_measurement(bpy.types.Operator):
@@ -211,7 +254,7 @@ class UNIPIXIE_OT_compare_measurement(JobOperator, bpy.types.Operator):
     def finish(self, context, result):
         s = _settings(context)
         s.rmse = result.rmse
-        _colour(s, result.per_point)
+        _colour(self, s, result)
         s.summary = result.describe().splitlines()[0]
         self.report({"INFO"}, f"RMSE {1e3 * result.rmse:.2f} mm; worst points {result.worst_points[:3]}")
         return {"FINISHED"}
@@ -259,7 +302,7 @@ class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
         s.summary = (f"{what}: {1e3 * result.baseline.rmse:.2f} → "
                      f"{1e3 * result.final.rmse:.2f} mm (noise {1e3 * result.noise_rmse:.2f} mm)")
         s.notes = "\n".join(result.warnings)
-        _colour(s, result.baseline.per_point)
+        _colour(self, s, result.baseline)
         for w in result.warnings:  # e.g. a predictive window, the discretisation floor, a lossy floor's caveat
             self.report({"WARNING"}, w)
         self.report({"INFO"} if explained else {"WARNING"}, s.summary)
@@ -303,6 +346,28 @@ class UNIPIXIE_OT_add_effect(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class UNIPIXIE_OT_clear_error_colours(bpy.types.Operator):
+    """Remove the error colours (over the run and at each frame, with their keys) from the point cloud and the source
+    object"""
+
+    bl_idname = "unipixie.clear_error_colours"
+    bl_label = "Clear error colours"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        from ..core.blender_io import error_animation as bea
+        from ..core.blender_io import measure as bio
+
+        s = _settings(context)
+        objects = _error_objects(s)
+        for obj in objects:
+            bio.remove_error_attribute(obj)
+            bea.remove_error_animation(obj)
+        s.colour_scale = ""
+        self.report({"INFO"}, f"error colours removed from {len(objects)} object(s)")
+        return {"FINISHED"}
+
+
 class UNIPIXIE_OT_open_diagnosis_report(bpy.types.Operator):
     """Open the diagnosis report (HTML) in the web browser"""
 
@@ -342,6 +407,13 @@ class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
         layout.prop(s, "solver_settings")
         layout.prop(s, "effects_on")
         layout.operator("unipixie.compare_measurement", icon="DRIVER_DISTANCE")
+        if s.colour_scale:
+            row = layout.row(align=True)
+            row.prop(s, "error_display", expand=True)
+            row.operator("unipixie.clear_error_colours", text="", icon="X")
+            col = layout.column(align=True)
+            for i, line in enumerate(textwrap.wrap(s.colour_scale, NOTE_WIDTH_CHARS)):
+                col.label(text=line, icon="COLOR" if i == 0 else "BLANK1")
         box = layout.box()
         box.prop(s, "out_dir")
         box.prop(s, "candidates")
@@ -361,7 +433,7 @@ class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
 
 CLASSES = (UniPixieDiagnosisSettings, UNIPIXIE_OT_load_measurement, UNIPIXIE_OT_measurement_from_object,
            UNIPIXIE_OT_compare_measurement, UNIPIXIE_OT_diagnose, UNIPIXIE_OT_add_effect,
-           UNIPIXIE_OT_open_diagnosis_report, VIEW3D_PT_unipixie_diagnose)
+           UNIPIXIE_OT_clear_error_colours, UNIPIXIE_OT_open_diagnosis_report, VIEW3D_PT_unipixie_diagnose)
 
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)

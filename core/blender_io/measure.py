@@ -5,12 +5,14 @@
   :class:`~unipixie.core.measurement.Measurement` of its vertices (world space, metres).
 * :func:`create_measurement_object` — a measurement as an animated point cloud beside the bake:
   a vertex-only mesh animated with absolute shape keys (one per instant, one ``eval_time``
-  curve, linear between instants) and drawn as spheres by a Geometry Nodes "Mesh to Points"
-  modifier.  Occluded samples hold the nearest observed position; the fraction of instants at
-  which each point was observed is stored in the point attribute ``unipixie_observed``.
+  curve, linear between instants) and drawn as small spheres by a Geometry Nodes modifier (an ico
+  sphere on each vertex, realised, so the error colours show in Solid shading and in renders).
+  Occluded samples hold the nearest observed position; the fraction of instants at which each
+  point was observed is stored in the point attribute ``unipixie_observed``.
 * :func:`write_error_attribute` — per-point error as a colour attribute (``unipixie_error``,
   viridis, 0 → dark blue … ``vmax`` → yellow; never-observed points grey) plus the raw value
-  in metres (``unipixie_error_m``, float; NaN for never observed).
+  in metres (``unipixie_error_m``, float; NaN for never observed); :func:`remove_error_attribute`.
+  The error at each frame, keyed for the time slider, is :mod:`.error_animation`'s.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ ERROR_COLOR_ATTRIBUTE = "unipixie_error"
 ERROR_VALUE_ATTRIBUTE = "unipixie_error_m"
 OBSERVED_ATTRIBUTE = "unipixie_observed"
 POINTS_NODE_GROUP = "UniPixie measured points"
+POINTS_NODE_GROUP_VERSION = 2
+"""Version of that group's nodes (a file holding an older group gets a new one beside it)."""
+POINTS_NODE_GROUP_VERSION_PROPERTY = "unipixie_version"
 MEASUREMENT_PATH_PROPERTY = "unipixie_measurement"
 """Custom property on a measurement object: the file it shows."""
 
@@ -113,21 +118,39 @@ def measurement_from_object(obj, frame_start: Optional[int] = None, frame_end: O
 
 
 # --------------------------------------------------------------------------- showing a measurement
-def _points_node_group(radius: float):
+def _points_node_group():
+    """The Geometry Nodes group that draws each vertex as a small sphere (an ico sphere instanced on the vertex and
+    realised, so that the vertices' attributes, the error colours among them, colour its faces in Solid shading and
+    in every render engine).  Input "Radius" (m)."""
     ng = bpy.data.node_groups.get(POINTS_NODE_GROUP)
-    if ng is None or ng.bl_idname != "GeometryNodeTree":
-        ng = bpy.data.node_groups.new(POINTS_NODE_GROUP, "GeometryNodeTree")
-        ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-        ng.interface.new_socket("Radius", in_out="INPUT", socket_type="NodeSocketFloat")
-        ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-        gi = ng.nodes.new("NodeGroupInput")
-        go = ng.nodes.new("NodeGroupOutput")
-        m2p = ng.nodes.new("GeometryNodeMeshToPoints")
-        ng.links.new(gi.outputs["Geometry"], m2p.inputs["Mesh"])
-        ng.links.new(gi.outputs["Radius"], m2p.inputs["Radius"])
-        ng.links.new(m2p.outputs["Points"], go.inputs["Geometry"])
-        gi.location = (-300, 0)
-        go.location = (300, 0)
+    if ng is not None and ng.bl_idname == "GeometryNodeTree" and ng.get(POINTS_NODE_GROUP_VERSION_PROPERTY) == \
+            POINTS_NODE_GROUP_VERSION:
+        return ng
+    ng = bpy.data.node_groups.new(POINTS_NODE_GROUP, "GeometryNodeTree")
+    ng[POINTS_NODE_GROUP_VERSION_PROPERTY] = POINTS_NODE_GROUP_VERSION
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Radius", in_out="INPUT", socket_type="NodeSocketFloat")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gi = ng.nodes.new("NodeGroupInput")
+    go = ng.nodes.new("NodeGroupOutput")
+    m2p = ng.nodes.new("GeometryNodeMeshToPoints")
+    sphere = ng.nodes.new("GeometryNodeMeshIcoSphere")
+    sphere.inputs["Subdivisions"].default_value = 1
+    inst = ng.nodes.new("GeometryNodeInstanceOnPoints")
+    real = ng.nodes.new("GeometryNodeRealizeInstances")
+    join = ng.nodes.new("GeometryNodeJoinGeometry")
+    ng.links.new(gi.outputs["Geometry"], m2p.inputs["Mesh"])
+    ng.links.new(gi.outputs["Radius"], sphere.inputs["Radius"])
+    ng.links.new(m2p.outputs["Points"], inst.inputs["Points"])
+    ng.links.new(sphere.outputs["Mesh"], inst.inputs["Instance"])
+    ng.links.new(inst.outputs["Instances"], real.inputs["Geometry"])
+    # the vertices themselves first: the joined mesh keeps their mesh's active colour attribute, which a realised
+    # mesh alone does not have (Solid shading colours by the active one)
+    ng.links.new(real.outputs["Geometry"], join.inputs["Geometry"])
+    ng.links.new(gi.outputs["Geometry"], join.inputs["Geometry"])
+    ng.links.new(join.outputs["Geometry"], go.inputs["Geometry"])
+    for x, node in enumerate((gi, m2p, sphere, inst, real, join, go)):
+        node.location = (-600 + 250 * x, 0 if node is not sphere else -200)
     return ng
 
 
@@ -207,7 +230,7 @@ def create_measurement_object(measurement, name: str = "Measurement", scene=None
         key.keyframe_insert("eval_time", frame=float(frames[t]))
     _set_linear(key, "eval_time")
     ext = float(np.max(np.ptp(np.asarray(measurement.rest), axis=0))) / scale
-    ng = _points_node_group(0.0)
+    ng = _points_node_group()
     mod = obj.modifiers.new("UniPixie points", "NODES")
     mod.node_group = ng
     sock = next(s for s in ng.interface.items_tree if getattr(s, "in_out", "") == "INPUT" and s.name == "Radius")
@@ -260,3 +283,18 @@ def write_error_attribute(obj, per_point_error: np.ndarray, vmax: Optional[float
         pass
     me.update()
     return name
+
+
+def remove_error_attribute(obj) -> bool:
+    """Remove what :func:`write_error_attribute` wrote on ``obj``'s mesh (both attributes); True if there was any."""
+    if obj is None or obj.type != "MESH":
+        raise UserError("the error can only be removed from a mesh object")
+    me = obj.data
+    found = False
+    for attr_name in (ERROR_COLOR_ATTRIBUTE, ERROR_VALUE_ATTRIBUTE):
+        old = me.attributes.get(attr_name)
+        if old is not None:
+            me.attributes.remove(old)
+            found = True
+    me.update()
+    return found
