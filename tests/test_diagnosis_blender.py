@@ -54,6 +54,15 @@ def test_point_cloud_follows_the_measurement(blender, tmp_path):
     observed = np.empty(8, dtype=np.float32)
     obj.data.attributes[bio.OBSERVED_ATTRIBUTE].data.foreach_get("value", observed)
     assert observed[3] == pytest.approx(5 / 6) and observed[0] == 1.0
+    # drawn as spheres, only where observed at that instant: the occluded point is not drawn at the third instant
+    obj.modifiers[0].show_viewport = True
+    faces = {}
+    for i in (1, 2, 3):
+        bpy.context.scene.frame_set(f0 + i)
+        ev = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        faces[i] = len(ev.to_mesh().polygons)
+        ev.to_mesh_clear()
+    assert faces[1] == faces[3] > 0 and faces[2] == faces[1] * 7 // 8
 
 
 def test_error_colour_attribute(blender):

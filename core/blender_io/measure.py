@@ -7,8 +7,10 @@
   a vertex-only mesh animated with absolute shape keys (one per instant, one ``eval_time``
   curve, linear between instants) and drawn as small spheres by a Geometry Nodes modifier (an ico
   sphere on each vertex, realised, so the error colours show in Solid shading and in renders).
-  Occluded samples hold the nearest observed position; the fraction of instants at which each
-  point was observed is stored in the point attribute ``unipixie_observed``.
+  A point is drawn only at the instants where it was observed (the point attribute
+  ``unipixie_observed_now``, keyed 1 / 0, constant between instants); its position there holds
+  the nearest observed one.  The fraction of instants at which each point was observed is
+  stored in the point attribute ``unipixie_observed``.
 * :func:`write_error_attribute` — per-point error as a colour attribute (``unipixie_error``,
   viridis, 0 → dark blue … ``vmax`` → yellow; never-observed points grey) plus the raw value
   in metres (``unipixie_error_m``, float; NaN for never observed); :func:`remove_error_attribute`.
@@ -24,10 +26,13 @@ import numpy as np
 
 from ..errors import UserError
 from .bake import scenario_from_scene, scene_fps, unit_scale, world_vertices
+from .bake.writing import PREFIX, assign_action, layered_action, set_keys
 
 ERROR_COLOR_ATTRIBUTE = "unipixie_error"
 ERROR_VALUE_ATTRIBUTE = "unipixie_error_m"
 OBSERVED_ATTRIBUTE = "unipixie_observed"
+OBSERVED_NOW_ATTRIBUTE = "unipixie_observed_now"
+"""Point attribute keyed at each instant: 1 where the point was observed then, 0 where not (the point is not drawn)."""
 POINTS_NODE_GROUP = "UniPixie measured points"
 POINTS_NODE_GROUP_VERSION = 2
 """Version of that group's nodes (a file holding an older group gets a new one beside it)."""
@@ -137,6 +142,24 @@ def _points_node_group():
     sphere = ng.nodes.new("GeometryNodeMeshIcoSphere")
     sphere.inputs["Subdivisions"].default_value = 1
     inst = ng.nodes.new("GeometryNodeInstanceOnPoints")
+    # drawn only where observed at this instant (the keyed OBSERVED_NOW_ATTRIBUTE; every point where it is missing)
+    seen = ng.nodes.new("GeometryNodeInputNamedAttribute")
+    seen.data_type = "FLOAT"
+    seen.inputs["Name"].default_value = OBSERVED_NOW_ATTRIBUTE
+    over = ng.nodes.new("FunctionNodeCompare")
+    over.data_type, over.operation = "FLOAT", "GREATER_THAN"
+    over.inputs["B"].default_value = 0.5
+    missing = ng.nodes.new("FunctionNodeBooleanMath")
+    missing.operation = "NOT"
+    either = ng.nodes.new("FunctionNodeBooleanMath")
+    either.operation = "OR"
+    ng.links.new(seen.outputs["Attribute"], over.inputs["A"])
+    ng.links.new(seen.outputs["Exists"], missing.inputs[0])
+    ng.links.new(over.outputs["Result"], either.inputs[0])
+    ng.links.new(missing.outputs["Boolean"], either.inputs[1])
+    ng.links.new(either.outputs["Boolean"], inst.inputs["Selection"])
+    for y, node in enumerate((seen, over, missing, either)):
+        node.location = (-350 + 100 * y, -400 - 60 * y)
     real = ng.nodes.new("GeometryNodeRealizeInstances")
     join = ng.nodes.new("GeometryNodeJoinGeometry")
     ng.links.new(gi.outputs["Geometry"], m2p.inputs["Mesh"])
@@ -210,6 +233,9 @@ def create_measurement_object(measurement, name: str = "Measurement", scene=None
     me.update()
     obs_attr = me.attributes.new(OBSERVED_ATTRIBUTE, "FLOAT", "POINT")
     obs_attr.data.foreach_set("value", measurement.observed.mean(axis=0).astype(np.float32))
+    observed = measurement.observed  # (T, N) bool
+    now = me.attributes.new(OBSERVED_NOW_ATTRIBUTE, "FLOAT", "POINT")
+    now.data.foreach_set("value", observed[0].astype(np.float32))
     obj = bpy.data.objects.new(name, me)
     scene.collection.objects.link(obj)
     obj[MEASUREMENT_PATH_PROPERTY] = str(source_path or measurement.source)
@@ -229,6 +255,13 @@ def create_measurement_object(measurement, name: str = "Measurement", scene=None
         key.eval_time = float(kb.frame)
         key.keyframe_insert("eval_time", frame=float(frames[t]))
     _set_linear(key, "eval_time")
+    partly = np.flatnonzero(~observed.all(axis=0))
+    if len(partly):  # a curve for each point that is not observed at some instant (constant between instants)
+        action, slot, bag = layered_action(f"{PREFIX} observed {me.name}", "MESH", me.name)
+        assign_action(me, action, slot)
+        for i in partly:
+            set_keys(bag.fcurves.new(f'attributes["{OBSERVED_NOW_ATTRIBUTE}"].data[{i}].value'),
+                     frames.astype(np.float32), observed[:, i].astype(np.float32), "CONSTANT")
     ext = float(np.max(np.ptp(np.asarray(measurement.rest), axis=0))) / scale
     ng = _points_node_group()
     mod = obj.modifiers.new("UniPixie points", "NODES")
