@@ -105,6 +105,9 @@ def add_arguments(p):
                         f"{DEFAULT_BUDGET_S:g}: "
                         "decided by this machine's speed; 0: never refine, enforce the coarse model's floor, the same "
                         "verdict on every machine; inf: always refine)")
+    p.add_argument("--keep-outliers", action="store_true",
+                   help="keep every sample: by default samples a tracker got wrong (a point centimetres off its "
+                        "neighbours' motion at one instant) are found from the tracks and treated as not observed")
     p.add_argument("--quiet", action="store_true", help="print only the result")
     p.add_argument("--allow-long", action="store_true",
                    help="run even when the times look like milliseconds or the estimated cost passes the long-job "
@@ -137,7 +140,8 @@ def run(args) -> int:
                                    max_additions=args.max_additions, device=device,
                                    settings=parse_settings(args.setting) or None, candidates=cands,
                                    parallel=args.parallel, allow_long=args.allow_long, progress=progress,
-                                   log=log, resolution_budget_s=args.resolution_budget)
+                                   log=log, resolution_budget_s=args.resolution_budget,
+                                   reject_outliers=not args.keep_outliers)
     print(result.summary())
     print(f"report: {args.out}/diagnosis.json, {args.out}/diagnosis.html")
     return 0

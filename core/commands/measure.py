@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from ...solvers.registry import SOLVER_NAMES
 from ._common import device as device_type
 from ._common import existing_file
@@ -213,9 +215,14 @@ def _show(args) -> int:
     print(f"  material: {json.dumps(mat)}")
     print(f"  scenario: {json.dumps(m.scenario.to_dict())}")
     if m.frame_count >= 4:
-        s = estimate_noise(m.positions, m.rest)
+        from ..diagnosis.outliers import find_tracking_outliers
+
+        found = find_tracking_outliers(m.positions, m.rest)
+        s = found.noise_sigma if math.isfinite(found.noise_sigma) else estimate_noise(m.positions, m.rest)
         print(f"  noise estimated from the tracks: σ = {1e3 * s:.3g} mm per coordinate "
               f"(noise floor RMSE {1e3 * noise_rmse(s):.3g} mm)")
+        if found.count:
+            print(f"  tracking outliers: {found.describe(m.observed_count)}")
     for w in m.warnings:
         print(f"  warning: {w}")
     from ..diagnosis import sanity

@@ -269,8 +269,8 @@ def _temporal_noise(pos: np.ndarray, orders: Sequence[int]) -> float:
     return best
 
 
-def _local_affine_residuals(pos: np.ndarray, rest: np.ndarray, neighbours: int,
-                           quadratic: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def local_affine_residuals(pos: np.ndarray, rest: np.ndarray, neighbours: int,
+                           quadratic: bool = False, trim: Optional[float] = None) -> tuple[np.ndarray, np.ndarray]:
     """Each tracked point's motion minus the affine (or quadratic) motion (in its rest coordinates) of its neighbours.
 
     pos: (T, N, 3) metres (NaN = unobserved); rest: (N, 3) metres.  For point i at instant t the motion of its
@@ -279,6 +279,9 @@ def _local_affine_residuals(pos: np.ndarray, rest: np.ndarray, neighbours: int,
     surface) and evaluated at r_i.  Returns (residual (T, N, 3) metres, NaN where it cannot be formed; variance factor
     (T, N): for white noise of std σ the residual has variance σ²·(1 + h), h = x_i·G⁻¹·x_i the leverage).
     Any rigid motion — however abrupt (an impact, a spin) — and any locally affine deformation cancels.
+    trim: metres; a neighbour further than this from the fit is left out of it and the fit is made again (twice):
+    one wrong sample then does not carry its error into its neighbours' residuals (an outlier search), and where no
+    neighbour is that far the fit is the plain one.
     """
     from scipy.spatial import cKDTree
 
@@ -301,10 +304,21 @@ def _local_affine_residuals(pos: np.ndarray, rest: np.ndarray, neighbours: int,
         A = np.concatenate(cols, axis=-1)  # (B, k, 4 or 10)
         n_coef = A.shape[-1]
         M = obs[:, J].astype(np.float64)  # (T, B, k)
-        G = np.einsum("tbk,bkp,bkq->tbpq", M, A, A) + 1e-9 * np.eye(n_coef)
-        rhs = np.einsum("tbk,bkp,tbkc->tbpc", M, A, filled[:, J])  # (T, B, 4, 3)
-        Ginv = np.linalg.pinv(G, hermitian=True)
-        coef = Ginv @ rhs
+        X = filled[:, J]  # (T, B, k, 3)
+        AA = (A[..., :, None] * A[..., None, :]).reshape(len(idx), A.shape[1], n_coef * n_coef)  # (B, k, p·p)
+        for refit in range(3 if trim is not None else 1):
+            if refit:  # leave out the neighbours far from the last fit (all observed ones judged again each time)
+                far = np.linalg.norm(X - np.einsum("bkp,tbpc->tbkc", A, coef), axis=-1) > trim
+                kept = obs[:, J] & ~far
+                if np.array_equal(kept, M > 0):
+                    break  # no neighbour left out, or the same ones again: the fit stands
+                M = kept.astype(np.float64)
+            # G[t, b] = Σ_k M[t, b, k] A[b, k] A[b, k]ᵀ, as one batched product over the neighbours
+            G = (np.matmul(M.transpose(1, 0, 2), AA).reshape(len(idx), T, n_coef, n_coef).transpose(1, 0, 2, 3)
+                 + 1e-9 * np.eye(n_coef))
+            rhs = np.einsum("tbk,bkp,tbkc->tbpc", M, A, X)  # (T, B, 4, 3)
+            Ginv = np.linalg.pinv(G, hermitian=True)
+            coef = Ginv @ rhs
         pred = coef[..., 0, :]  # the fit at r_i (local coordinates: x_i = (1, 0, 0, 0))
         h = Ginv[..., 0, 0]
         enough = (M.sum(-1) >= n_coef + 2) & obs[:, idx]
@@ -326,7 +340,7 @@ def estimate_noise(positions: np.ndarray, rest_positions: Optional[np.ndarray] =
       frame-scale vibration it starts, is not smooth: on drops this alone over-estimated σ 3× (2.4–2.9 mm
       against a true 0.87 mm, issue 18).
     * **spatial–temporal** (with ``rest_positions``): each point's motion minus the local affine motion of its
-      :data:`NOISE_NEIGHBOURS` nearest rest neighbours (:func:`_local_affine_residuals`) removes every rigid
+      :data:`NOISE_NEIGHBOURS` nearest rest neighbours (:func:`local_affine_residuals`) removes every rigid
       motion exactly — the jump of velocity at an impact, a spin — and the locally affine part of any
       deformation; the time differences (k = 1..3) of that residual then remove the static non-affine shape.
       The variance of each sample (noise of the point, of its neighbours through the fit's leverage, and of the
@@ -350,7 +364,7 @@ def estimate_noise(positions: np.ndarray, rest_positions: Optional[np.ndarray] =
                                               (NOISE_NEIGHBOURS_QUADRATIC, True, NOISE_NEIGHBOURS_QUADRATIC + 1)):
             if pos.shape[1] < fewest:
                 continue
-            resid, factor = _local_affine_residuals(pos, rest, neighbours, quadratic)
+            resid, factor = local_affine_residuals(pos, rest, neighbours, quadratic)
             for k in (1, 2, 3):
                 if pos.shape[0] <= k + 1:
                     break

@@ -3,7 +3,8 @@
 This module is the orchestrator (:func:`diagnose`, the diagnosis's defaults); the steps live beside it:
 :mod:`.problem` (the measurement, the simulation and the residuals), :mod:`.base_fit` (the base model's E/ρ,
 its predictive window, the base material's check), :mod:`.candidates` (the effects fitted each round),
-:mod:`.checks` (their significance, held-out and half-step checks), :mod:`.results` (what is reported).
+:mod:`.checks` (their significance, held-out and half-step checks), :mod:`.results` (what is reported),
+:mod:`.outliers` (samples a tracker got wrong).
 
 ::
 
@@ -19,8 +20,9 @@ What it does (``shared/specs/measurement-format.md`` §3, ``shared/notes/diagnos
 1. **Simulate** the measurement's scenario with the model as given (its material, the chosen
    solver, the effects already on) and **compare** (:mod:`.compare`): RMSE over observed
    samples, per point / instant / region, worst points and instants.
-2. **Noise**: the measurement noise σ is estimated from the tracks themselves
-   (:func:`.compare.estimate_noise`).
+2. **Tracking outliers and noise**: samples a tracker got wrong are found from the tracks alone and treated as not
+   observed (:mod:`.outliers`; ``reject_outliers``); the measurement noise σ is estimated from the tracks
+   themselves (:func:`.compare.estimate_noise`).
 3. **Base fit** (:mod:`.base_fit`): the base material's Young's modulus is refitted (a grid of starts, then
    Levenberg–Marquardt).  Under gravity and inertia alone the motion depends on E/ρ only,
    so this is a fit of E/ρ, reported as a scale of the stated E.  It is applied through the
@@ -67,6 +69,7 @@ from .checks import check_leading, half_step_simulation, judge
 from .compare import compare, estimate_noise, noise_rmse
 from .contact_fit import fit_base_contact, floor_caveat
 from .fit import BASE_SCALE_BOUNDS, Parametrisation, base_param, e_prior_width
+from .outliers import find_tracking_outliers, without_samples
 from .problem import Problem, Reference, max_strain, problem_scales
 from .resolution import DEFAULT_BUDGET_S, apply_floor, check_resolution, plain_settings
 from .results import Diagnosis, Round, format_params
@@ -121,8 +124,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
              settings=None, candidates: Optional[Sequence[str]] = None, region_clusters: int = DEFAULT_REGION_CLUSTERS,
              max_batch: Optional[int] = None, dt_check: bool = True, holdout: bool = True, lm_iterations: int = 6,
              predictive_window: bool = True, parallel: Optional[bool] = None, allow_long: bool = False,
-             resolution_budget_s: float = DEFAULT_BUDGET_S, progress: Optional[Progress] = None,
-             log: Optional[Log] = None) -> Diagnosis:
+             resolution_budget_s: float = DEFAULT_BUDGET_S, reject_outliers: bool = True,
+             progress: Optional[Progress] = None, log: Optional[Log] = None) -> Diagnosis:
     """Diagnose ``measurement`` (:class:`~unipixie.core.measurement.Measurement`) with ``solver``.
 
     effects_on: effects already on in the current model (effect objects or ``"name:k=v"`` specs);
@@ -147,6 +150,8 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
     any simulation).
     allow_long: accept measurements whose times look like milliseconds and diagnoses past the long-job
     limit (:mod:`.sanity` refuses them otherwise, as it refuses scenarios that contradict the measurement).
+    reject_outliers: samples a tracker got wrong (:mod:`.outliers`, from the tracks alone) are treated as not
+    observed, and the report says how many and which (``tracking_outliers``); False keeps every sample.
     Returns a :class:`Diagnosis`.
     """
     from ...solvers import api
@@ -182,13 +187,25 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
         from .report import check_out_dir
 
         check_out_dir(out_dir)
-    sigma = estimate_noise(measurement.positions, measurement.rest)
+    outliers = None
+    if reject_outliers:
+        outliers = find_tracking_outliers(measurement.positions, measurement.rest)
+        if outliers.count:
+            observed_before = measurement.observed_count
+            measurement = without_samples(measurement, outliers.mask)
+    if outliers is not None and outliers.count == 0 and math.isfinite(outliers.noise_sigma):
+        sigma = outliers.noise_sigma  # the same tracks: the search's own estimate
+    else:
+        sigma = estimate_noise(measurement.positions, measurement.rest)
     settings = diagnosis_settings(solver, settings)
     api.coerce_settings(solver, settings)  # a bad value is named here, before the cost estimate reads it
     say(f"measurement: {measurement.summary()}")
     sane_warnings = sanity.check(measurement, solver, settings, sigma=sigma, allow_long=allow_long, log=say)
     body = measurement.body()
     warnings = list(measurement.warnings) + sane_warnings + list(body.warnings)
+    if outliers is not None and outliers.count:
+        warnings.append(outliers.describe(observed_before))
+        say(warnings[-1])
     say(f"noise estimated from the tracks: σ = {1e3 * sigma:.3g} mm per coordinate "
         f"(noise floor RMSE {1e3 * noise_rmse(sigma):.3g} mm)")
     frame_times = measurement.times - measurement.times[0]
@@ -397,7 +414,9 @@ def diagnose(measurement, solver: str = "spring_mass", *, out_dir=None, effects_
                        added=added, E_scale=ref.scale, identified=identified, wall_s=0.0,
                        simulations=P.evaluations, ground_height=measurement.scenario.ground_height,
                        warnings=warnings, contact_times=contact_at, settings=settings_used, horizon=horizon,
-                       base_contact=contact.to_dict(P.n_obs), resolution=resolution.to_dict())
+                       base_contact=contact.to_dict(P.n_obs), resolution=resolution.to_dict(),
+                       tracking_outliers=(outliers.to_dict(measurement.times) if outliers is not None
+                                          else {"checked": False}))
     result.verdict = verdict_mod.for_diagnosis(result)
     result.wall_s = time.perf_counter() - t_start
     say(f"verdict: {result.verdict['sentence']}")

@@ -146,6 +146,9 @@ class Diagnosis:
     """The ground contact fitted as part of the base (:meth:`.contact_fit.ContactFit.to_dict`)."""
     resolution: dict = field(default_factory=dict)
     """The base model's resolution check (:meth:`.resolution.ResolutionCheck.to_dict`)."""
+    tracking_outliers: dict = field(default_factory=dict)
+    """Samples set aside as tracking errors (:meth:`.outliers.TrackingOutliers.to_dict`; ``{"checked": False}``
+    when the search was switched off)."""
 
     @property
     def candidates(self) -> list:
@@ -199,6 +202,7 @@ class Diagnosis:
             "contact_times": self.contact_times,
             "base_contact": self.base_contact,
             "resolution": self.resolution,
+            "tracking_outliers": self.tracking_outliers,
             "predictive_until": json_float(self.horizon),
             "wall_s": json_float(self.wall_s),
             "simulations": int(self.simulations),
