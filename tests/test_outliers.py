@@ -49,9 +49,21 @@ def test_clean_tracks_have_no_outliers(clean_measurements):
         found = ol.find_tracking_outliers(m.positions, m.rest)
         assert found.count == 0, name
         assert found.noise_sigma == pytest.approx(0.001, rel=0.3), name
-        spike, _ = ol._spikes(m.positions, m.rest, ol.SPIKE_THRESHOLD * found.noise_sigma)
+        spike, _ = ol._spikes(m.positions, m.rest, ol.TRIM_SIGMAS * found.noise_sigma)
         largest = np.nanmax(np.linalg.norm(spike, axis=-1))
         assert largest < 0.8 * found.threshold_m, (name, largest, found.threshold_m)
+
+
+def test_soft_solids_ringing_faster_than_the_frames_lose_next_to_nothing():
+    """A jelly bar (E 20 kPa) swinging from its clamp and a jelly cube bouncing, tracked at 24 frames/s: the motion
+    between frames is not smooth for the search's comparison, yet at most 0.1 % of the samples are taken (3 and 0 of
+    3,600–3,900; at a threshold of 9 instead of 12 robust standard deviations, 5 and 11)."""
+    for solver, settings, shape, scenario in (("mpm", {"cells_across": 10}, "bar", "clamped"),
+                                              ("spring_mass", {"anchors": 128}, "cube", "drop")):
+        m = synth.synthesize([], solver, settings=settings, shape=shape, scenario=scenario, noise=0.0005,
+                             occlusion=0.1, points=200, duration=0.8, fps=24, E=2e4, seed=1)
+        found = ol.find_tracking_outliers(m.positions, m.rest)
+        assert found.count <= 0.001 * m.observed_count, (shape, found.count, m.observed_count)
 
 
 def test_injected_mistracks_are_found(clean_measurements):

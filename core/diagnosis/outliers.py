@@ -9,16 +9,18 @@ would throw away the very error an effect is missing):
 
 * each point's motion minus the affine motion of its :data:`~.compare.NOISE_NEIGHBOURS` nearest rest neighbours
   (:func:`~.compare.local_affine_residuals`) removes any rigid motion, however abrupt (an impact, a spin), and any
-  locally affine deformation; a neighbour further than :data:`SPIKE_THRESHOLD` × the noise σ from that fit is left
+  locally affine deformation; a neighbour further than :data:`TRIM_SIGMAS` × the noise σ from that fit is left
   out of it (a wrong sample would carry its error into its neighbours' residuals, amplified where they lie nearly on
   a surface);
 * that residual, divided by its noise standard deviation √(1 + h) (h the fit's leverage), less the median of the
   same point's at its six nearest observed instants (its **spike**), is the noise and the change of the non-affine
   deformation over a few instants for a good sample, and the whole tracking error for a bad one;
 * a spike more than :data:`SPIKE_THRESHOLD` robust standard deviations (1.4826·MAD of every spike's components, this
-  measurement's own scale) and the largest among the instants it was compared with is an outlier; the outliers are
-  set aside and the rest searched again (a good sample next to a run of bad ones has a smaller spike: its median
-  takes them in).  Runs of up to three bad instants of one point are found whole.
+  measurement's own scale), the largest among the instants it was compared with, and more than
+  :data:`NEIGHBOUR_RATIO` times its neighbours' at that instant (a deformation the frames do not resolve moves
+  neighbouring points alike) is an outlier; the outliers are set aside and the first search's other suspects judged
+  again (a good sample next to a run of bad ones has a smaller spike: its median takes them in).  Runs of up to three
+  bad instants of one point are found whole.
 
 :func:`find_tracking_outliers` returns them as a (T, N) mask; :func:`~.diagnose.diagnose` treats them as not
 observed (as occluded samples) and says so.  Measured on the referee's 20 clean cases and on injected mis-tracks in
@@ -36,11 +38,22 @@ import numpy as np
 from ..errors import UserError
 from .compare import NOISE_NEIGHBOURS, estimate_noise, local_affine_residuals
 
-SPIKE_THRESHOLD = 9.0
-"""A sample is an outlier when its spike exceeds this many robust standard deviations of the spikes' components
-(white noise alone exceeds it once in 10¹⁶ samples per coordinate)."""
+SPIKE_THRESHOLD = 12.0
+"""A sample is an outlier when its spike exceeds this many robust standard deviations of the spikes' components.
+White noise alone never does; the referee's clean measurements reach 6.2, and soft solids ringing faster than the
+frames resolve, tracked through a coarse spring network or MPM grid, more (at 9 those lost up to 12 of 3,600–8,800
+samples, at 12 at most 3; docs/diagnosis.md "Tracking outliers")."""
+TRIM_SIGMAS = 6.0
+"""A neighbour further than this many noise σ from a point's local affine fit is left out of that fit (a wrong
+sample would carry its error into its neighbours' residuals).  Chosen over 9 and 12 on injected mis-tracks and on
+soft solids ringing faster than the frames: fewer good samples taken with the bad ones, and fewer taken from the
+soft solids (docs/diagnosis.md "Tracking outliers")."""
 MIN_POINTS = NOISE_NEIGHBOURS + 2
 """Fewest tracked points with which outliers are looked for (each point is judged against its neighbours)."""
+NEIGHBOUR_RATIO = 3.0
+"""An outlier's spike is more than this many times the median of its neighbours' spikes at that instant: a
+deformation the frames do not resolve moves neighbouring points alike (their spikes of one size), a tracking error
+one point alone."""
 MAX_ROUNDS = 20
 """Searches at most (each sets aside the largest spikes, then looks again)."""
 _WINDOW = 3  # instants on each side whose median a sample's residual is compared with
@@ -150,7 +163,7 @@ def find_tracking_outliers(positions: np.ndarray, rest_positions: np.ndarray,
     """The samples of ``positions`` (T, N, 3) metres, NaN = unobserved, that a tracker got wrong (module docstring).
 
     rest_positions: (N, 3) metres.  With fewer than :data:`MIN_POINTS` points or 6 instants nothing is found.
-    A neighbour further from a point's local fit than :data:`SPIKE_THRESHOLD` × the measurement's noise σ
+    A neighbour further from a point's local fit than :data:`TRIM_SIGMAS` × the measurement's noise σ
     (:func:`~.compare.estimate_noise`) is left out of that fit: a wrong sample would otherwise carry its error into
     its neighbours' residuals, amplified where they lie nearly on a surface.
     """
@@ -166,20 +179,32 @@ def find_tracking_outliers(positions: np.ndarray, rest_positions: np.ndarray,
         return TrackingOutliers(mask, math.inf, math.nan, 0)
     if not (math.isfinite(noise) and noise > 0):
         return TrackingOutliers(mask, math.inf, math.nan, 0, noise)
-    trim = threshold * noise  # a neighbour this far from its fit is no good for judging others
+    trim = TRIM_SIGMAS * noise  # a neighbour this far from its fit is no good for judging others
+    from scipy.spatial import cKDTree
+
+    _, nn = cKDTree(rest).query(rest, k=NOISE_NEIGHBOURS + 1)
+    nn = nn[:, 1:]  # (N, k): the neighbours, the point itself left out
     tau, sigma, rounds = math.inf, math.nan, 0
     for rounds in range(1, MAX_ROUNDS + 1):
         spike, largest_around = _spikes(pos, rest, trim)
         comps = spike[np.isfinite(spike)]
         if comps.size < 20:
             break
+        size = _size(spike)
         if rounds == 1:  # the scale from the first search: later ones, without the worst samples, would tighten it
             sigma = float(1.4826 * np.median(np.abs(comps - np.median(comps))))
             tau = threshold * sigma
-        size = _size(spike)
+            suspects = size > tau  # later searches judge these again only (setting samples aside thins the fits of
+            # the others; a sample that was not suspect with every sample in place does not become one)
         # the largest spike among the instants it was compared with: a good sample next to a run of bad ones has a
         # spike too (its median takes them in), smaller than theirs; it is judged again once they are set aside
-        new = (size > tau) & (size >= largest_around)
+        # and well above its neighbours': a deformation the sampling does not resolve (a soft part ringing faster
+        # than the frames) moves neighbouring points alike, a tracking error one point alone
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            nearby = np.nanmedian(np.where(size[:, nn] > 0, size[:, nn], np.nan), axis=-1)  # (T, N)
+        alone = ~(size <= NEIGHBOUR_RATIO * np.where(np.isfinite(nearby), nearby, 0.0))
+        new = suspects & ~mask & (size > tau) & (size >= largest_around) & alone
         if not new.any():
             break
         mask |= new
