@@ -238,8 +238,13 @@ def test_compare_diagnose_and_add_effect_operators(blender, tmp_path):
     assert bpy.ops.unipixie.diagnose() == {"FINISHED"}
     assert s.identified == "wind" and (tmp_path / "report" / "diagnosis.html").is_file()
     doc = json.loads((tmp_path / "report" / "diagnosis.json").read_text())
-    assert doc["identified"] == "wind"
+    assert doc["identified"] == "wind" and doc["tracking_outliers"]["count"] == 0  # searched, none in these tracks
     assert s.notes == "\n".join(doc["warnings"])  # the report's warnings reach the panel
+    s.keep_outliers, s.max_additions, s.out_dir = True, 0, str(tmp_path / "kept")  # the panel's switch reaches it
+    assert bpy.ops.unipixie.diagnose() == {"FINISHED"}
+    kept = json.loads((tmp_path / "kept" / "diagnosis.json").read_text())
+    assert kept["tracking_outliers"] == {"checked": False}
+    s.keep_outliers, s.max_additions = False, 1
     assert bpy.ops.unipixie.add_effect() == {"FINISHED"}
     assert s.effects_on.startswith("wind:acceleration=")
     assert bpy.ops.unipixie.compare_measurement() == {"FINISHED"}  # the model now has the wind: the error fell

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from ..core.errors import UserError
 from ..solvers import effects as _effects
@@ -76,6 +76,11 @@ class UniPixieDiagnosisSettings(bpy.types.PropertyGroup):
     out_dir: StringProperty(name="Report folder", subtype="DIR_PATH", default="//unipixie_diagnosis")
     max_additions: IntProperty(name="Max additions", default=3, min=0, max=7,
                                description="Add at most this many effects (0: only rank them)")
+    keep_outliers: BoolProperty(name="Keep tracking outliers", default=False,
+                                description="Keep every sample. Off (the default): samples a tracker got wrong (a "
+                                            "point centimetres off its neighbours' motion for an instant or three) "
+                                            "are found from the tracks and treated as not observed; the report "
+                                            "lists them")
     add_effect: EnumProperty(name="Add", items=ADD_ITEMS, default="AUTO")
     rmse: FloatProperty(name="RMSE (m)", default=0.0, precision=5)
     identified: StringProperty(name="Identified", default="")
@@ -278,12 +283,13 @@ class UNIPIXIE_OT_diagnose(JobOperator, bpy.types.Operator):
         cands = [c.strip() for c in s.candidates.split(",") if c.strip()] or None
         out_dir = bpy.path.abspath(s.out_dir) if s.out_dir else bpy.path.abspath("//unipixie_diagnosis")
         solver, device, max_add, settings = s.solver, s.device, s.max_additions, _solver_settings(s)
+        reject_outliers = not s.keep_outliers
         progress = Progress(total=100.0, show_bar=False)
 
         def work():
             return diagnose.diagnose(m, solver, out_dir=out_dir, effects_on=effects_on, max_additions=max_add,
                                      device=resolve_device(device), settings=settings, candidates=cands,
-                                     progress=progress)
+                                     reject_outliers=reject_outliers, progress=progress)
 
         result = yield from _run_in_thread(work, progress)
         return result, out_dir
@@ -418,6 +424,7 @@ class VIEW3D_PT_unipixie_diagnose(bpy.types.Panel):
         box.prop(s, "out_dir")
         box.prop(s, "candidates")
         box.prop(s, "max_additions")
+        box.prop(s, "keep_outliers")
         box.operator("unipixie.diagnose", icon="VIEWZOOM")
         if s.summary:
             layout.label(text=s.summary)
