@@ -131,11 +131,12 @@ def _colour(operator, settings, comparison) -> None:
     from ..core.blender_io import measure as bio
 
     notes = []
+    # the top of the run's colour scale: stated in the panel, so drawn with (the default of error_colours too)
+    run_top = float(np.nanmax(comparison.per_point)) if np.isfinite(comparison.per_point).any() else 0.0
     for obj in _error_objects(settings):
         if len(obj.data.vertices) != len(comparison.per_point):
             continue
-        bio.write_error_attribute(obj, comparison.per_point)
-        run_top = float(np.nanmax(comparison.per_point)) if np.isfinite(comparison.per_point).any() else 0.0
+        bio.write_error_attribute(obj, comparison.per_point, vmax=run_top)
         try:
             animation = bea.write_error_animation(obj, comparison.distances, comparison.times)
             notes.append(f"{obj.name}: {animation.describe()}; over the run 0 → {1e3 * run_top:.3g} mm")

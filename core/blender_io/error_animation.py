@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import UserError
 from .bake.writing import PREFIX, assign_action, layered_action, set_keys
 from .bake import scene_fps
-from .measure import error_colours
+from .measure import error_colours, remove_attributes
 
 ERROR_NOW_COLOR_ATTRIBUTE = "unipixie_error_now"
 ERROR_NOW_VALUE_ATTRIBUTE = "unipixie_error_now_m"
@@ -122,10 +122,7 @@ def remove_error_animation(obj) -> int:
                                                        for strip in layer.strips for b in strip.channelbags):
             me.animation_data.action = None
             bpy.data.actions.remove(action)
-    for name in (ERROR_NOW_COLOR_ATTRIBUTE, ERROR_NOW_VALUE_ATTRIBUTE):
-        attr = me.attributes.get(name)
-        if attr is not None:
-            me.attributes.remove(attr)
+    remove_attributes(me, (ERROR_NOW_COLOR_ATTRIBUTE, ERROR_NOW_VALUE_ATTRIBUTE))
     if SCALE_PROPERTY in me:
         del me[SCALE_PROPERTY]
     me.update()

@@ -301,10 +301,7 @@ def write_error_attribute(obj, per_point_error: np.ndarray, vmax: Optional[float
     if len(me.vertices) != len(err):
         raise UserError(f"object '{obj.name}' has {len(me.vertices)} vertices but the error has {len(err)} points; "
                         "pick the object the measurement was made from (or its point cloud)")
-    for attr_name in (name, ERROR_VALUE_ATTRIBUTE):
-        old = me.attributes.get(attr_name)
-        if old is not None:
-            me.attributes.remove(old)
+    remove_attributes(me, (name, ERROR_VALUE_ATTRIBUTE))
     col = me.color_attributes.new(name, "FLOAT_COLOR", "POINT")
     col.data.foreach_set("color", error_colours(err, vmax).ravel())
     val = me.attributes.new(ERROR_VALUE_ATTRIBUTE, "FLOAT", "POINT")
@@ -323,11 +320,17 @@ def remove_error_attribute(obj) -> bool:
     if obj is None or obj.type != "MESH":
         raise UserError("the error can only be removed from a mesh object")
     me = obj.data
+    found = remove_attributes(me, (ERROR_COLOR_ATTRIBUTE, ERROR_VALUE_ATTRIBUTE))
+    me.update()
+    return found
+
+
+def remove_attributes(me, names) -> bool:
+    """Remove the attributes ``names`` from the mesh datablock ``me`` where it has them; True if it had any."""
     found = False
-    for attr_name in (ERROR_COLOR_ATTRIBUTE, ERROR_VALUE_ATTRIBUTE):
+    for attr_name in names:
         old = me.attributes.get(attr_name)
         if old is not None:
             me.attributes.remove(old)
             found = True
-    me.update()
     return found

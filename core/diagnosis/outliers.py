@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import UserError
 from .compare import NOISE_NEIGHBOURS, estimate_noise, local_affine_residuals
+from .results import json_float
 
 SPIKE_THRESHOLD = 12.0
 """A sample is an outlier when its spike exceeds this many robust standard deviations of the spikes' components.
@@ -91,13 +92,9 @@ class TrackingOutliers:
         [instant index, time (s), point index]."""
         where = np.argwhere(self.mask)
         return {"count": self.count, "points": int(self.mask.any(axis=0).sum()),
-                "threshold_m": _finite(self.threshold_m), "spike_sigma_m": _finite(self.spike_sigma_m),
+                "threshold_m": json_float(self.threshold_m), "spike_sigma_m": json_float(self.spike_sigma_m),
                 "samples": [[int(t), round(float(times[t]), 9), int(i)] for t, i in where[:listed]],
                 "listed": int(min(len(where), listed))}
-
-
-def _finite(x: float):
-    return float(x) if math.isfinite(x) else None
 
 
 _OFFSETS = (-1, 1, -2, 2, -3, 3, -4, 4, -5, 5, -6, 6)
